@@ -1,0 +1,119 @@
+"""Speed, peak memory and FLOPs of one PVSNet forward pass (CPU inference by default).
+
+Examples::
+
+    python benchmarks/model_speed.py                          # 640x480, N=5, default config
+    python benchmarks/model_speed.py --height 128 --width 160 --train   # one training step
+    python benchmarks/model_speed.py --planes_per_stage 32 16 8 --profile
+
+Prints seconds per forward (or per forward+backward+optimizer step with ``--train``), the
+peak resident set size of the process (``resource.getrusage``) and the FLOP count of one
+forward pass (``torch.utils.flop_counter.FlopCounterMode``; convolutions and matmuls only).
+Any ``PVSNetConfig`` field can be overridden with ``--<field> value``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import resource
+import time
+
+import torch
+
+from colmap_pvs.config import add_config_arguments, config_from_args
+from colmap_pvs.model import PVSNet, PVSNetConfig, pvsnet_loss
+
+
+def make_inputs(batch: int, views: int, height: int, width: int, seed: int = 0):
+    """Random images and a small forward-facing camera rig looking at depths 2..10."""
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(batch, views, 3, height, width, generator=g)
+    f = 0.8 * width
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    intrinsics = K.expand(batch, views, 3, 3).clone()
+    poses = torch.eye(4).expand(batch, views, 4, 4).clone()
+    for i in range(1, views):
+        poses[:, i, 0, 3] = 0.15 * ((i + 1) // 2) * (-1) ** i
+        poses[:, i, 1, 3] = 0.05 * (i % 3 - 1)
+    depth_min = torch.full((batch,), 2.0)
+    depth_max = torch.full((batch,), 10.0)
+    return images, intrinsics, poses, depth_min, depth_max
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--views", type=int, default=5, help="N, reference included")
+    parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument("--repeats", type=int, default=2, help="timed runs (after one warm-up)")
+    parser.add_argument("--train", action="store_true", help="time a training step (forward+backward+Adam)")
+    parser.add_argument("--no_flops", action="store_true", help="skip the FLOP count")
+    parser.add_argument("--profile", action="store_true", help="print the top operators (torch.profiler)")
+    add_config_arguments(parser, PVSNetConfig)
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(args.threads)
+    config = config_from_args(PVSNetConfig, args)
+    model = PVSNet(config)
+    inputs = make_inputs(args.batch, args.views, args.height, args.width)
+    print(f"config: {config}")
+    print(
+        f"input: B={args.batch} N={args.views} {args.width}x{args.height}, threads={args.threads}, "
+        f"params={model.num_parameters() / 1e6:.3f} M, rss before={peak_rss_mb():.0f} MB"
+    )
+
+    if args.train:
+        model.train()
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+        gt = torch.full((args.batch, args.height, args.width), 4.0)
+
+        def step() -> None:
+            opt.zero_grad(set_to_none=True)
+            out = model(*inputs)
+            loss, _ = pvsnet_loss(out, gt, inputs[3], inputs[4], config.loss_weights)
+            loss.backward()
+            opt.step()
+
+        run = step
+    else:
+        model.eval()
+
+        def run() -> None:
+            with torch.inference_mode():
+                model(*inputs)
+
+    run()  # warm-up
+    times = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    what = "train step (fwd+bwd+Adam)" if args.train else "forward (inference_mode)"
+    print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
+    print(f"peak RSS: {peak_rss_mb():.0f} MB")
+
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            run()
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+
+    if not args.no_flops:
+        from torch.utils.flop_counter import FlopCounterMode
+
+        model.eval()
+        with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+            model(*inputs)
+        print(f"FLOPs of one forward pass: {counter.get_total_flops() / 1e9:.1f} GFLOP")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""``colmap-pvs`` command line: a thin front end over the library's step functions.
+
+Every subcommand builds the step's frozen config from flags generated out of that
+config dataclass (so defaults live in one place) and calls the same library function
+a Python user would call. Installed as ``colmap_pvs.cli`` (never as a top-level ``cli``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from colmap_pvs import __version__
+from colmap_pvs.config import add_config_arguments, config_from_args
+from colmap_pvs.errors import ColmapPVSError
+
+logger = logging.getLogger("colmap_pvs.cli")
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: ``module:ConfigClass`` and ``module:function`` (imported lazily)."""
+
+    name: str
+    help: str
+    config: str | None = None
+    function: str | None = None
+    report: str | None = None
+    planned: str | None = None  # set while the command is not built yet
+    required: tuple[str, ...] = ()
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command(
+        "undistort",
+        "undistort a sparse model + images into a dense workspace (pycolmap)",
+        "colmap_pvs.io.workspace:UndistortConfig",
+        "colmap_pvs.io.workspace:undistort",
+        required=("image_path", "input_path", "output_path"),
+    ),
+    Command(
+        "select-views",
+        "score source views (MVSNet score) and depth ranges; writes stereo/patch-match.cfg",
+        "colmap_pvs.views:SelectViewsConfig",
+        "colmap_pvs.views:run_select_views",
+        "colmap_pvs.cli.reports:report_select_views",
+        required=("workspace_path",),
+    ),
+    Command(
+        "stereo",
+        "PVSNet depth + normal maps in COLMAP's format (replaces patch_match_stereo)",
+        "colmap_pvs.stereo:StereoConfig",
+        "colmap_pvs.stereo:run_stereo",
+        "colmap_pvs.cli.reports:report_stereo",
+        required=("workspace_path",),
+    ),
+    Command("fuse", "fuse depth maps into a point cloud (ours or COLMAP's)", planned="issue #5"),
+    Command("mesh", "screened Poisson mesh from a fused cloud", planned="issue #5"),
+    Command("reconstruct", "images -> SfM -> stereo -> fusion -> mesh, in one command", planned="issue #5"),
+    Command("import-poses", "known poses + intrinsics -> COLMAP model with triangulated points",
+            planned="issue #5"),
+    Command("demo", "run the whole pipeline on a built-in synthetic scene", planned="issue #5"),
+    Command("train", "train PVSNet on synthetic scenes (anti-noise strategy)", planned="issue #6"),
+    Command(
+        "evaluate depth",
+        "depth-map metrics (coverage, MAE, RMSE, AbsRel, % under thresholds) against GT depth",
+        "colmap_pvs.evaluate:EvaluateDepthConfig",
+        "colmap_pvs.evaluate:evaluate_depth",
+        "colmap_pvs.cli.reports_eval:report_depth",
+        required=("workspace_path", "gt"),
+    ),
+    Command(
+        "evaluate cloud",
+        "point-cloud accuracy / completeness / F1 (ETH3D-style) and DTU distances against a GT cloud",
+        "colmap_pvs.evaluate:EvaluateCloudConfig",
+        "colmap_pvs.evaluate:evaluate_cloud",
+        "colmap_pvs.cli.reports_eval:report_cloud",
+        required=("cloud", "gt"),
+    ),
+)
+
+
+def _load(ref: str):
+    module, _, attr = ref.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="colmap-pvs",
+        description="Learned dense multi-view stereo (PVSNet) for COLMAP workspaces, CPU first.",
+    )
+    parser.add_argument("--version", action="version", version=f"colmap-pvs {__version__}")
+    parser.add_argument("--log_level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    groups: dict[str, argparse._SubParsersAction] = {}
+    for cmd in COMMANDS:
+        help_text = cmd.help if cmd.planned is None else f"{cmd.help} [not built yet: {cmd.planned}]"
+        group, _, leaf = cmd.name.rpartition(" ")
+        if group:  # nested, e.g. "evaluate depth"
+            if group not in groups:
+                gp = sub.add_parser(group, help=f"{group} subcommands")
+                groups[group] = gp.add_subparsers(dest=f"{group}_command", metavar="SUBCOMMAND",
+                                                  required=True)
+            p = groups[group].add_parser(leaf, help=help_text, description=help_text)
+            p.set_defaults(command=cmd.name)
+        else:
+            p = sub.add_parser(cmd.name, help=help_text, description=help_text)
+        if cmd.config is not None:
+            add_config_arguments(p, _load(cmd.config), required=cmd.required)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.command is None:
+        parser.print_help()
+        return 2
+    cmd = next(c for c in COMMANDS if c.name == args.command)
+    if cmd.planned is not None:
+        sys.stderr.write(f"colmap-pvs {cmd.name}: not built yet (planned in {cmd.planned}).\n")
+        return 2
+    config_cls = _load(cmd.config)
+    function: Callable = _load(cmd.function)
+    try:
+        config = config_from_args(config_cls, args)
+        result = function(config)
+    except ColmapPVSError as exc:
+        sys.stderr.write(f"colmap-pvs {cmd.name}: error: {exc}\n")
+        return 1
+    if cmd.report is not None:
+        sys.stdout.write(_load(cmd.report)(result) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

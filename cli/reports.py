@@ -1,0 +1,19 @@
+"""Human-readable summaries the CLI prints after a step (the library returns data)."""
+
+from __future__ import annotations
+
+
+def report_select_views(result) -> str:
+    from colmap_pvs.views import format_selection_table
+
+    return format_selection_table(result)
+
+
+def report_stereo(result) -> str:
+    lines = [
+        f"workspace: {result.workspace.root}",
+        f"computed: {len(result.processed)}  already done: {len(result.already_done)}  "
+        f"skipped: {len(result.skipped)}  seconds/image: {result.seconds_per_image:.2f}",
+    ]
+    lines += [f"  skipped {name}: {why}" for name, why in result.skipped.items()]
+    return "\n".join(lines)

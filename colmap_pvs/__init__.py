@@ -1,0 +1,9 @@
+"""colmap-pvs: CPU-first learned dense multi-view stereo (PVSNet) for COLMAP workspaces."""
+
+from __future__ import annotations
+
+import logging
+
+__version__ = "0.1.0"
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -1,0 +1,258 @@
+"""Typed, frozen dataclass configs: conversion, validation and CLI flag generation.
+
+Every step of the pipeline takes one frozen dataclass config. That dataclass is the
+single source of defaults: the CLI flags are generated from it
+(:func:`add_config_arguments`), dictionaries are checked against it
+(:func:`config_from_dict`, unknown keys are errors) and the resolved config is saved
+next to the outputs (:func:`save_config`) and inside every checkpoint.
+
+Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``,
+``Literal[...]``, ``X | None`` of those, ``tuple[T, ...]`` of scalars and nested
+config dataclasses (nested ones are not exposed as flags).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import tempfile
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
+
+from .errors import ConfigError
+
+C = TypeVar("C")
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+def parse_bool(text: str | bool) -> bool:
+    """Parse COLMAP-style booleans (``1/0``, ``true/false``, ``yes/no``)."""
+    if isinstance(text, bool):
+        return text
+    low = str(text).strip().lower()
+    if low in _TRUE:
+        return True
+    if low in _FALSE:
+        return False
+    raise ConfigError(f"expected a boolean (true/false/1/0), got {text!r}")
+
+
+def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
+    origin = get_origin(tp)
+    if origin in (Union, types.UnionType):
+        args = [a for a in get_args(tp) if a is not type(None)]
+        if len(args) == 1 and len(get_args(tp)) == 2:
+            return args[0], True
+    return tp, False
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Convert ``value`` (from JSON or the CLI) to the annotated type ``tp``."""
+    inner, optional = _unwrap_optional(tp)
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{where}: None is not allowed (type {tp})")
+    tp = inner
+    origin = get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping for {tp.__name__}, got {value!r}")
+        return config_from_dict(tp, value, _where=where)
+    if origin is Literal:
+        choices = get_args(tp)
+        if value not in choices:
+            raise ConfigError(f"{where}: {value!r} is not one of {list(choices)}")
+        return value
+    if origin is tuple:
+        args = get_args(tp)
+        if isinstance(value, str):
+            value = [v for v in value.replace(",", " ").split() if v]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
+    if tp is bool:
+        try:
+            return parse_bool(value)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    if tp is int:
+        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        try:
+            return int(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}") from None
+    if tp is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+    if tp is str:
+        if not isinstance(value, (str, Path)):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return str(value)
+    if tp is Path:
+        if not isinstance(value, (str, Path)):
+            raise ConfigError(f"{where}: expected a path, got {value!r}")
+        return Path(value)
+    raise ConfigError(f"{where}: unsupported config field type {tp!r}")
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
+def config_from_dict(cls: type[C], data: dict[str, Any], *, _where: str | None = None) -> C:
+    """Build ``cls`` from a mapping. Unknown keys and ill-typed values raise :class:`ConfigError`."""
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a dataclass")
+    where = _where or cls.__name__
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"{where}: unknown config key(s) {unknown}; known keys are {sorted(fields)}")
+    hints = _hints(cls)
+    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def replace_config(cfg: C, **changes: Any) -> C:
+    """Like :func:`dataclasses.replace`, but type-checked and strict about unknown keys."""
+    merged = config_to_dict(cfg)
+    merged.update({k: (config_to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()})
+    return config_from_dict(type(cfg), merged)
+
+
+def _jsonable(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return config_to_dict(value)
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain JSON-compatible dict of a config (nested configs become dicts)."""
+    if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
+        raise TypeError(f"{cfg!r} is not a dataclass instance")
+    return {f.name: _jsonable(getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.init}
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_config(cfg: Any, path: str | os.PathLike, **extra: Any) -> Path:
+    """Save the resolved config as JSON (atomically). ``extra`` keys are stored beside it."""
+    payload = {"config_class": type(cfg).__name__, "config": config_to_dict(cfg)}
+    payload.update({k: _jsonable(v) for k, v in extra.items()})
+    return atomic_write_bytes(path, (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode())
+
+
+def load_config(cls: type[C], path: str | os.PathLike) -> C:
+    """Load a config saved by :func:`save_config` (or a plain JSON mapping)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file {str(path)!r} does not exist") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"config file {str(path)!r} is not valid JSON: {exc}") from None
+    if isinstance(data, dict) and "config" in data and "config_class" in data:
+        data = data["config"]
+    return config_from_dict(cls, data)
+
+
+# --------------------------------------------------------------------------- CLI flags
+
+
+def _field_help(field: dataclasses.Field) -> str:
+    return str(field.metadata.get("help", ""))
+
+
+def add_config_arguments(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    *,
+    exclude: typing.Iterable[str] = (),
+    required: typing.Iterable[str] = (),
+) -> None:
+    """Add one ``--field_name`` flag per scalar field of ``cls`` (COLMAP style).
+
+    Defaults are not duplicated: a flag that is not given stays absent from the
+    parsed namespace (``argparse.SUPPRESS``) and the dataclass default applies.
+    Help texts come from ``field(metadata={"help": ...})``.
+    """
+    exclude = set(exclude)
+    required = set(required)
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name in exclude:
+            continue
+        tp, _optional = _unwrap_optional(hints[f.name])
+        if dataclasses.is_dataclass(tp):
+            continue
+        default = (
+            f.default
+            if f.default is not dataclasses.MISSING
+            else (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        )
+        help_text = _field_help(f)
+        if f.name not in required:
+            help_text = f"{help_text} (default: {_jsonable(default)})".strip()
+        kwargs: dict[str, Any] = {"dest": f.name, "help": help_text, "default": argparse.SUPPRESS}
+        origin = get_origin(tp)
+        if origin is Literal:
+            kwargs["choices"] = list(get_args(tp))
+            kwargs["metavar"] = "{" + ",".join(map(str, get_args(tp))) + "}"
+        elif origin is tuple:
+            kwargs["nargs"] = "+"
+            kwargs["metavar"] = "V"
+        elif tp is bool:
+            kwargs["type"] = parse_bool
+            kwargs["metavar"] = "BOOL"
+        elif tp in (int, float, str, Path):
+            kwargs["type"] = str if tp is Path else tp
+        else:
+            continue
+        if f.name in required:
+            kwargs["required"] = True
+        parser.add_argument(f"--{f.name}", **kwargs)
+
+
+def config_from_args(cls: type[C], args: argparse.Namespace, **overrides: Any) -> C:
+    """Build ``cls`` from the flags that were given on the command line (plus ``overrides``)."""
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    data = {k: v for k, v in vars(args).items() if k in names}
+    data.update(overrides)
+    return config_from_dict(cls, data)

@@ -1,0 +1,31 @@
+"""Exceptions raised by colmap-pvs. Every message names the offending value."""
+
+from __future__ import annotations
+
+
+class ColmapPVSError(Exception):
+    """Base class for all errors raised by colmap-pvs."""
+
+
+class ConfigError(ColmapPVSError, ValueError):
+    """An unknown config key, or a value of the wrong type or range."""
+
+
+class WorkspaceError(ColmapPVSError):
+    """A missing or malformed COLMAP (dense) workspace or sparse model."""
+
+
+class UnsupportedCameraError(WorkspaceError):
+    """A camera model that is not a pinhole; it must be undistorted first."""
+
+
+class MapFormatError(ColmapPVSError):
+    """A corrupt, truncated or otherwise unreadable COLMAP ``.bin`` array file."""
+
+
+class CheckpointError(ColmapPVSError):
+    """A missing, corrupt or mismatched model checkpoint."""
+
+
+class ShapeError(ColmapPVSError, ValueError):
+    """A tensor or array whose shape does not match the documented one."""

@@ -1,0 +1,856 @@
+"""The ``evaluate`` steps: depth maps against GT depth, point clouds against a GT cloud.
+
+Depth maps (:func:`evaluate_depth`)
+-----------------------------------
+Every ``stereo/depth_maps/NAME.{geometric|photometric}.bin`` of a workspace is compared with
+a GT depth map found in a folder by a configurable name pattern (``{stem}`` by default: the
+image name without its extension, so ``frame.jpg`` -> ``GT/frame.npy`` or ``GT/frame.png``).
+GT maps are ``.npy`` arrays, 16-bit / float PNG or TIFF; integer GT needs an explicit
+``gt_scale`` (e.g. ``0.001`` for millimetres), float GT defaults to scale 1 (scene units).
+GT of a different size is resized to the prediction's size with nearest-neighbour sampling at
+pixel centres (prediction pixel ``(c, r)`` reads GT pixel
+``(floor((c + 0.5) W_gt / W), floor((r + 0.5) H_gt / H))``); depths are never interpolated.
+
+Validity: a GT pixel is valid when finite and ``> 0`` (and ``<= max_gt_depth`` if set); a
+prediction pixel when finite and ``> 0``. **Error metrics (MAE, RMSE, AbsRel, % under
+thresholds) are computed over the pixels valid in both**; ``coverage`` is the percentage of
+valid GT pixels that have a valid prediction. Report both: a method can trade coverage for error.
+
+- MAE ``= mean |p - g|``, RMSE ``= sqrt(mean (p - g)^2)``, AbsRel ``= mean |p - g| / g``;
+- ``rel_under_pct[t]`` = % of pixels with ``|p - g| / g < t``;
+- ``abs_under_pct[t]`` = % of pixels with ``|p - g| < t`` (``t`` in scene units).
+
+"Pooled" statistics sum over all pixels of all evaluated images (images with more valid
+pixels weigh more). Images listed in ``images`` without a prediction count as coverage 0.
+
+Point clouds (:func:`evaluate_cloud`)
+-------------------------------------
+ETH3D-style accuracy / completeness / F1 at each tolerance, following the official program
+(github.com/ETH3D/multi-view-evaluation, ``src/accuracy.cc``, ``src/completeness.cc``):
+
+- completeness: a GT point is *complete* at tolerance ``t`` when its nearest reconstruction point
+  is within ``t``; accuracy: a reconstruction point is *accurate* when its nearest GT point is
+  within ``t``.
+- Density normalisation, exactly as the official program: points are binned into cubic voxels of
+  ``voxel_size`` in two grids (shifted by 0 and by half a voxel); the per-voxel fraction of
+  complete (accurate) points is averaged over all occupied voxels of both grids.
+- F1 ``= 2 P R / (P + R)`` (0 when both are 0), with P = accuracy and R = completeness.
+
+Approximation (documented): the official accuracy uses the laser scanner's beams to mark a
+reconstruction point *unobserved* (ignored) when no scan ray passes near it, or *inaccurate*
+only when it lies in observed free space. A plain GT ``.ply`` has no scanner origins, so here
+**every reconstruction point counts as observed**: points where the GT has no coverage count as
+inaccurate. This makes our accuracy a lower bound of ETH3D's on partial GT.
+The plain point fractions (no voxel normalisation) are reported too.
+
+DTU-style metrics (Jensen et al. 2014; the MATLAB/Python evaluation): mean distance from the
+reconstruction to the GT (accuracy) and from the GT to the reconstruction (completeness) and
+their mean ("overall"), with distances ``>= dtu_max_dist`` discarded as outliers (DTU's
+convention; ``dtu_outliers="clamp"`` clamps them instead). DTU's observability mask and plane
+are not modelled; the optional voxel downsampling of the reconstruction (``dtu_downsample``)
+uses open3d's voxel-centroid downsampling instead of DTU's minimum-distance thinning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from . import __version__
+from .config import save_config
+from .errors import ConfigError, MapFormatError, ShapeError, WorkspaceError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CloudMetrics",
+    "DepthErrorStats",
+    "DepthMetrics",
+    "EvaluateCloudConfig",
+    "EvaluateDepthConfig",
+    "cloud_metrics",
+    "compute_depth_metrics",
+    "evaluate_cloud",
+    "evaluate_depth",
+    "file_sha256",
+    "find_gt_depth",
+    "read_gt_depth",
+    "resize_nearest",
+]
+
+GT_EXTENSIONS = (".npy", ".png", ".tif", ".tiff")
+# colmap_pvs.stereo.CONFIG_FILENAME (not imported: that would pull in torch and the model).
+STEREO_RECORD = "colmap_pvs_stereo.json"
+METRICS_NOTE = (
+    "MAE, RMSE, AbsRel and the % under thresholds are computed over pixels valid in both the "
+    "prediction and the GT; coverage_pct = % of valid GT pixels with a valid prediction"
+)
+
+
+def _check_thresholds(name: str, values: tuple[float, ...]) -> None:
+    bad = [v for v in values if not (math.isfinite(v) and v > 0)]
+    if bad:
+        raise ConfigError(f"{name} must be positive numbers, got {values!r} (bad: {bad})")
+
+
+# =========================================================================== depth maps
+
+
+@dataclass(frozen=True)
+class EvaluateDepthConfig:
+    """Settings of ``evaluate depth`` (the single source of its defaults and CLI flags)."""
+
+    workspace_path: Path = field(metadata={"help": "COLMAP dense workspace with stereo/depth_maps"})
+    gt: Path = field(metadata={"help": "folder of GT depth maps (.npy in scene units, or 16-bit PNG)"})
+    kind: Literal["geometric", "photometric"] = field(
+        default="geometric", metadata={"help": "which predicted depth maps to evaluate"}
+    )
+    gt_pattern: str = field(
+        default="{stem}",
+        metadata={
+            "help": "GT file name (relative to --gt) of an image; {name}: image name, {stem}: image name "
+            "without extension. Without a known extension, .npy/.png/.tif/.tiff are tried in turn"
+        },
+    )
+    gt_scale: float | None = field(
+        default=None,
+        metadata={
+            "help": "GT depth = stored value * gt_scale (e.g. 0.001 for uint16 millimetres); "
+            "default: 1 for float GT, required for integer GT"
+        },
+    )
+    images: tuple[str, ...] = field(
+        default=(),
+        metadata={
+            "help": "evaluate only these image names; listed images without a prediction count as "
+            "coverage 0 (default: every predicted map)"
+        },
+    )
+    rel_thresholds: tuple[float, ...] = field(
+        default=(0.01, 0.02, 0.05), metadata={"help": "relative-error thresholds for '% under' (0.01 = 1%)"}
+    )
+    abs_thresholds: tuple[float, ...] = field(
+        default=(0.01, 0.02, 0.05, 0.1),
+        metadata={"help": "absolute-error thresholds for '% under', in scene units"},
+    )
+    max_gt_depth: float = field(
+        default=0.0, metadata={"help": "ignore GT pixels deeper than this (scene units); 0: no limit"}
+    )
+    scale_alignment: Literal["none", "median"] = field(
+        default="none",
+        metadata={
+            "help": "'median': scale each prediction by median(gt / pred) first (for models whose scale "
+            "is arbitrary, e.g. plain SfM); 'none': compare as is"
+        },
+    )
+    output_path: Path | None = field(
+        default=None, metadata={"help": "metrics JSON; default: WORKSPACE/stereo/metrics.json"}
+    )
+
+    def __post_init__(self) -> None:
+        _check_thresholds("rel_thresholds", self.rel_thresholds)
+        _check_thresholds("abs_thresholds", self.abs_thresholds)
+        if self.gt_scale is not None and not (math.isfinite(self.gt_scale) and self.gt_scale > 0):
+            raise ConfigError(f"gt_scale must be a positive number, got {self.gt_scale}")
+        if not (math.isfinite(self.max_gt_depth) and self.max_gt_depth >= 0):
+            raise ConfigError(f"max_gt_depth must be >= 0 (0: no limit), got {self.max_gt_depth}")
+        if "{name}" not in self.gt_pattern and "{stem}" not in self.gt_pattern:
+            raise ConfigError(f"gt_pattern must contain {{name}} or {{stem}}, got {self.gt_pattern!r}")
+
+
+@dataclass(frozen=True)
+class DepthErrorStats:
+    """Depth errors of one image (or pooled over images).
+
+    Attributes:
+        num_gt: valid GT pixels.
+        num_valid: pixels valid in both prediction and GT (the error metrics use these).
+        coverage_pct: ``100 * num_valid / num_gt`` (``nan`` without valid GT).
+        mae, rmse, absrel: mean absolute error, root mean square error (scene units), mean
+            absolute relative error (``nan`` when ``num_valid == 0``).
+        rel_under_pct: relative threshold -> % of the ``num_valid`` pixels with ``|p-g|/g < t``.
+        abs_under_pct: absolute threshold -> % of the ``num_valid`` pixels with ``|p-g| < t``.
+        scale: the scale applied to the prediction (1 unless ``scale_alignment="median"``).
+    """
+
+    num_gt: int
+    num_valid: int
+    coverage_pct: float
+    mae: float
+    rmse: float
+    absrel: float
+    rel_under_pct: dict[float, float]
+    abs_under_pct: dict[float, float]
+    scale: float = 1.0
+
+    def to_json(self) -> dict:
+        """JSON-compatible dict (``nan`` becomes ``None``; threshold keys become strings)."""
+
+        def num(v: float) -> float | None:
+            return None if not math.isfinite(v) else float(v)
+
+        return {
+            "num_gt": self.num_gt,
+            "num_valid": self.num_valid,
+            "coverage_pct": num(self.coverage_pct),
+            "mae": num(self.mae),
+            "rmse": num(self.rmse),
+            "absrel": num(self.absrel),
+            "rel_under_pct": {f"{k:g}": num(v) for k, v in self.rel_under_pct.items()},
+            "abs_under_pct": {f"{k:g}": num(v) for k, v in self.abs_under_pct.items()},
+            "scale": num(self.scale),
+        }
+
+
+@dataclass
+class _DepthSums:
+    """Additive sums from which :class:`DepthErrorStats` follow exactly (so pooling is exact)."""
+
+    rel_thresholds: tuple[float, ...]
+    abs_thresholds: tuple[float, ...]
+    num_gt: int = 0
+    num_valid: int = 0
+    sum_abs: float = 0.0
+    sum_sq: float = 0.0
+    sum_rel: float = 0.0
+    rel_counts: np.ndarray = field(default=None)  # type: ignore[assignment]
+    abs_counts: np.ndarray = field(default=None)  # type: ignore[assignment]
+    scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.rel_counts is None:
+            self.rel_counts = np.zeros(len(self.rel_thresholds), dtype=np.int64)
+        if self.abs_counts is None:
+            self.abs_counts = np.zeros(len(self.abs_thresholds), dtype=np.int64)
+
+    def add(self, other: _DepthSums) -> None:
+        self.num_gt += other.num_gt
+        self.num_valid += other.num_valid
+        self.sum_abs += other.sum_abs
+        self.sum_sq += other.sum_sq
+        self.sum_rel += other.sum_rel
+        self.rel_counts += other.rel_counts
+        self.abs_counts += other.abs_counts
+
+    def stats(self) -> DepthErrorStats:
+        n = self.num_valid
+        nan = float("nan")
+
+        def pct(count: int) -> float:
+            return 100.0 * float(count) / n if n else nan
+
+        return DepthErrorStats(
+            num_gt=int(self.num_gt),
+            num_valid=int(n),
+            coverage_pct=100.0 * n / self.num_gt if self.num_gt else nan,
+            mae=self.sum_abs / n if n else nan,
+            rmse=math.sqrt(self.sum_sq / n) if n else nan,
+            absrel=self.sum_rel / n if n else nan,
+            rel_under_pct={t: pct(c) for t, c in zip(self.rel_thresholds, self.rel_counts, strict=True)},
+            abs_under_pct={t: pct(c) for t, c in zip(self.abs_thresholds, self.abs_counts, strict=True)},
+            scale=self.scale,
+        )
+
+
+def resize_nearest(array: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of ``[H, W]`` to ``[height, width]`` at pixel centres (no blending).
+
+    Output pixel ``(c, r)`` takes input pixel ``(floor((c + 0.5) W / width), floor((r + 0.5) H / height))``.
+    """
+    array = np.asarray(array)
+    if array.ndim != 2:
+        raise ShapeError(f"resize_nearest expects an [H, W] array, got shape {array.shape}")
+    h, w = array.shape
+    if (h, w) == (height, width):
+        return array
+    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return array[rows[:, None], cols[None, :]]
+
+
+def _depth_sums(
+    pred: np.ndarray,
+    gt: np.ndarray,
+    rel_thresholds: tuple[float, ...],
+    abs_thresholds: tuple[float, ...],
+    max_gt_depth: float = 0.0,
+    scale_alignment: str = "none",
+) -> _DepthSums:
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if pred.ndim != 2 or gt.ndim != 2:
+        raise ShapeError(f"expected [H, W] prediction and GT, got shapes {pred.shape} and {gt.shape}")
+    if gt.shape != pred.shape:
+        gt = resize_nearest(gt, *pred.shape)
+    gt_valid = np.isfinite(gt) & (gt > 0)
+    if max_gt_depth > 0:
+        gt_valid &= gt <= max_gt_depth
+    both = gt_valid & np.isfinite(pred) & (pred > 0)
+    p, g = pred[both], gt[both]
+    scale = 1.0
+    if scale_alignment == "median" and p.size:
+        scale = float(np.median(g / p))
+        p = p * scale
+    err = np.abs(p - g)
+    rel = err / g
+    sums = _DepthSums(tuple(rel_thresholds), tuple(abs_thresholds), scale=scale)
+    sums.num_gt = int(gt_valid.sum())
+    sums.num_valid = int(both.sum())
+    sums.sum_abs = float(err.sum())
+    sums.sum_sq = float(np.square(err).sum())
+    sums.sum_rel = float(rel.sum())
+    sums.rel_counts = np.array([(rel < t).sum() for t in rel_thresholds], dtype=np.int64)
+    sums.abs_counts = np.array([(err < t).sum() for t in abs_thresholds], dtype=np.int64)
+    return sums
+
+
+def compute_depth_metrics(
+    pred: np.ndarray,
+    gt: np.ndarray,
+    rel_thresholds: tuple[float, ...] = (0.01, 0.02, 0.05),
+    abs_thresholds: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1),
+    max_gt_depth: float = 0.0,
+    scale_alignment: Literal["none", "median"] = "none",
+) -> DepthErrorStats:
+    """Depth errors of one predicted map against GT.
+
+    Args:
+        pred: ``[H, W]`` predicted depth (``0`` / non-finite = no prediction).
+        gt: ``[H', W']`` GT depth in the same units (``0`` / non-finite = invalid); resized to
+            ``[H, W]`` with :func:`resize_nearest` when the sizes differ.
+
+    Returns:
+        :class:`DepthErrorStats`; errors over pixels valid in both, plus coverage.
+    """
+    return _depth_sums(pred, gt, rel_thresholds, abs_thresholds, max_gt_depth, scale_alignment).stats()
+
+
+def find_gt_depth(gt_dir: Path, name: str, pattern: str = "{stem}") -> Path | None:
+    """GT file of image ``name`` in ``gt_dir`` following ``pattern`` (see :class:`EvaluateDepthConfig`)."""
+    stem = str(Path(name).with_suffix("")) if Path(name).suffix else name
+    try:
+        rel = pattern.format(name=name, stem=stem)
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ConfigError(
+            f"gt_pattern {pattern!r} is not a valid pattern ({exc!r}); use {{name}}/{{stem}}"
+        ) from None
+    base = Path(gt_dir) / rel
+    if base.suffix.lower() in GT_EXTENSIONS:
+        return base if base.is_file() else None
+    for ext in GT_EXTENSIONS:
+        candidate = base.with_name(base.name + ext)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def read_gt_depth(path: str | Path, scale: float | None = None) -> np.ndarray:
+    """Read a GT depth map as ``[H, W]`` float32 scene units (0 = invalid).
+
+    ``.npy`` arrays, PNG (8/16-bit, or float via TIFF) are supported. Integer data needs ``scale``
+    (stored value * scale = depth); float data defaults to scale 1.
+
+    Raises:
+        MapFormatError: unreadable file, not a single-channel map.
+        ConfigError: integer GT without ``scale``.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise MapFormatError(f"cannot read GT depth {str(path)!r}: {exc}") from None
+    else:
+        import cv2
+
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if data is None:
+            raise MapFormatError(f"cannot read GT depth {str(path)!r} (missing, or not an image)")
+    data = np.asarray(data)
+    if data.ndim == 3 and data.shape[2] == 1:
+        data = data[:, :, 0]
+    if data.ndim != 2:
+        raise MapFormatError(
+            f"GT depth {str(path)!r} must be a single-channel [H, W] map, got shape {data.shape}"
+        )
+    if np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_:
+        if scale is None:
+            raise ConfigError(
+                f"GT depth {str(path)!r} stores integers ({data.dtype}); pass gt_scale "
+                "(e.g. 0.001 for millimetres) to convert them to scene units"
+            )
+    elif not np.issubdtype(data.dtype, np.floating):
+        raise MapFormatError(f"GT depth {str(path)!r} has unsupported dtype {data.dtype}")
+    depth = data.astype(np.float64) * (1.0 if scale is None else float(scale))
+    return depth.astype(np.float32)
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _stereo_run_info(stereo_dir: Path) -> tuple[dict | None, str | None, str | None]:
+    """``(stereo config json, checkpoint path, checkpoint sha256)`` from the stereo step's record."""
+    record = stereo_dir / STEREO_RECORD
+    if not record.is_file():
+        logger.warning("no %s: the checkpoint used for these maps is unknown", record)
+        return None, None, None
+    try:
+        info = json.loads(record.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        logger.warning("cannot read %s (%s): the checkpoint used is unknown", record, exc)
+        return None, None, None
+    ckpt = info.get("checkpoint_used") if isinstance(info, dict) else None
+    sha = None
+    if ckpt:
+        if Path(ckpt).is_file():
+            sha = file_sha256(ckpt)
+        else:
+            logger.warning("checkpoint %r recorded in %s no longer exists: no hash", ckpt, record)
+    return info, ckpt, sha
+
+
+def _predicted_names(depth_dir: Path, kind: str) -> list[str]:
+    suffix = f".{kind}.bin"
+    if not depth_dir.is_dir():
+        return []
+    return sorted(
+        p.relative_to(depth_dir).as_posix()[: -len(suffix)]
+        for p in depth_dir.rglob(f"*{suffix}")
+        if p.is_file()
+    )
+
+
+@dataclass
+class DepthMetrics:
+    """Result of :func:`evaluate_depth`.
+
+    Attributes:
+        per_image: image name -> its :class:`DepthErrorStats`, in name order.
+        pooled: statistics pooled over every pixel of every evaluated image.
+        missing_gt: predicted images without a GT file (not evaluated).
+        missing_prediction: images listed in ``config.images`` without a predicted map (counted
+            with coverage 0 in ``pooled``).
+        config: the config used; output_path: where the metrics JSON was written.
+        checkpoint_used, checkpoint_sha256: from ``stereo/colmap_pvs_stereo.json`` (``None`` if unknown).
+    """
+
+    per_image: dict[str, DepthErrorStats]
+    pooled: DepthErrorStats
+    missing_gt: list[str]
+    missing_prediction: list[str]
+    config: EvaluateDepthConfig
+    output_path: Path
+    checkpoint_used: str | None = None
+    checkpoint_sha256: str | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "note": METRICS_NOTE,
+            "pooled": self.pooled.to_json(),
+            "per_image": {k: v.to_json() for k, v in self.per_image.items()},
+            "missing_gt": list(self.missing_gt),
+            "missing_prediction": list(self.missing_prediction),
+        }
+
+
+def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
+    """Compare a workspace's predicted depth maps with GT depth; write the metrics JSON atomically.
+
+    Raises:
+        WorkspaceError: not a workspace, or no predicted depth map to evaluate.
+        ConfigError: missing GT folder, no GT for any predicted image, integer GT without scale.
+        MapFormatError: unreadable prediction or GT file.
+    """
+    from .io.maps import read_depth_map
+    from .io.workspace import detect_workspace
+
+    ws = detect_workspace(config.workspace_path, create_stereo_dirs=False)
+    gt_dir = Path(config.gt)
+    if not gt_dir.is_dir():
+        raise ConfigError(f"GT folder {str(gt_dir)!r} does not exist or is not a folder")
+    depth_dir = ws.depth_maps_dir
+    predicted = _predicted_names(depth_dir, config.kind)
+    names = list(config.images) if config.images else predicted
+    if not predicted and not config.images:
+        raise WorkspaceError(f"no {config.kind} depth maps (*.{config.kind}.bin) under {str(depth_dir)!r}")
+    predicted_set = set(predicted)
+    rel_t, abs_t = tuple(config.rel_thresholds), tuple(config.abs_thresholds)
+    pooled = _DepthSums(rel_t, abs_t)
+    per_image: dict[str, DepthErrorStats] = {}
+    missing_gt: list[str] = []
+    missing_pred: list[str] = []
+    warned_aspect = False
+    missing_shape: tuple[int, ...] | None = None
+    for name in tqdm(names, desc="evaluate depth", unit="image", disable=len(names) < 20):
+        gt_path = find_gt_depth(gt_dir, name, config.gt_pattern)
+        if gt_path is None:
+            logger.warning(
+                "no GT depth for %r in %s (pattern %r): not evaluated", name, gt_dir, config.gt_pattern
+            )
+            missing_gt.append(name)
+            continue
+        gt = read_gt_depth(gt_path, config.gt_scale)
+        if name in predicted_set:
+            pred = read_depth_map(ws.depth_map_path(name, config.kind))
+        else:
+            logger.warning("no %s depth map for listed image %r: counted as coverage 0", config.kind, name)
+            missing_pred.append(name)
+            # Counted at the size of the other predictions (pixels weigh the same in the pool).
+            if missing_shape is None:
+                missing_shape = (
+                    read_depth_map(ws.depth_map_path(predicted[0], config.kind)).shape
+                    if predicted
+                    else gt.shape
+                )
+            pred = np.zeros(missing_shape, dtype=np.float32)
+        if not warned_aspect and gt.shape != pred.shape:
+            sy, sx = gt.shape[0] / pred.shape[0], gt.shape[1] / pred.shape[1]
+            if abs(sx / sy - 1.0) > 0.01:
+                logger.warning(
+                    "GT %s is %dx%d but the prediction is %dx%d: aspect ratios differ by %.1f%% "
+                    "(different crops?); resizing anyway",
+                    gt_path.name,
+                    gt.shape[1],
+                    gt.shape[0],
+                    pred.shape[1],
+                    pred.shape[0],
+                    100 * abs(sx / sy - 1),
+                )
+                warned_aspect = True
+        sums = _depth_sums(pred, gt, rel_t, abs_t, config.max_gt_depth, config.scale_alignment)
+        if sums.num_gt == 0:
+            logger.warning("GT depth %s has no valid pixel", gt_path)
+        per_image[name] = sums.stats()
+        pooled.add(sums)
+    if not per_image:
+        raise ConfigError(
+            f"no GT depth found in {str(gt_dir)!r} for any of the {len(names)} image(s) "
+            f"(pattern {config.gt_pattern!r}, e.g. {names[0]!r} -> "
+            f"{config.gt_pattern.format(name=names[0], stem=Path(names[0]).with_suffix(''))!r}.*)"
+        )
+    pooled_stats = pooled.stats()
+    if config.scale_alignment == "median":
+        pooled_stats = dataclasses.replace(pooled_stats, scale=float("nan"))  # per-image scales differ
+    stereo_info, ckpt, sha = _stereo_run_info(ws.stereo_dir)
+    out = Path(config.output_path) if config.output_path is not None else ws.stereo_dir / "metrics.json"
+    metrics = DepthMetrics(
+        per_image=per_image,
+        pooled=pooled_stats,
+        missing_gt=missing_gt,
+        missing_prediction=missing_pred,
+        config=config,
+        output_path=out,
+        checkpoint_used=ckpt,
+        checkpoint_sha256=sha,
+    )
+    save_config(
+        config,
+        out,
+        colmap_pvs_version=__version__,
+        checkpoint_used=ckpt,
+        checkpoint_sha256=sha,
+        stereo_run=stereo_info,
+        metrics=metrics.to_json(),
+    )
+    logger.info(
+        "evaluated %d image(s): coverage %.1f%%, MAE %.4g, AbsRel %.4g -> %s",
+        len(per_image),
+        pooled_stats.coverage_pct,
+        pooled_stats.mae,
+        pooled_stats.absrel,
+        out,
+    )
+    return metrics
+
+
+# =========================================================================== point clouds
+
+
+@dataclass(frozen=True)
+class EvaluateCloudConfig:
+    """Settings of ``evaluate cloud`` (the single source of its defaults and CLI flags)."""
+
+    cloud: Path = field(metadata={"help": "reconstructed point cloud (.ply), e.g. fused.ply"})
+    gt: Path = field(metadata={"help": "GT point cloud (.ply), same coordinate frame and units"})
+    thresholds: tuple[float, ...] = field(
+        default=(0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
+        metadata={"help": "tolerances (scene units) for accuracy / completeness / F1 (ETH3D's defaults)"},
+    )
+    voxel_size: float = field(
+        default=0.01,
+        metadata={
+            "help": "voxel size (scene units) of ETH3D's per-volume normalisation (its default 0.01 m)"
+        },
+    )
+    dtu_max_dist: float = field(
+        default=0.5,
+        metadata={"help": "DTU-style mean distances: distances >= this are outliers (DTU: 20 mm)"},
+    )
+    dtu_outliers: Literal["discard", "clamp"] = field(
+        default="discard", metadata={"help": "DTU outliers are discarded (DTU's convention) or clamped"}
+    )
+    dtu_downsample: float = field(
+        default=0.0,
+        metadata={
+            "help": "voxel-downsample the reconstruction to this size before the DTU distances; 0: off"
+        },
+    )
+    output_path: Path | None = field(
+        default=None, metadata={"help": "metrics JSON; default: CLOUD with suffix .metrics.json"}
+    )
+
+    def __post_init__(self) -> None:
+        if not self.thresholds:
+            raise ConfigError("thresholds must list at least one tolerance")
+        _check_thresholds("thresholds", self.thresholds)
+        object.__setattr__(self, "thresholds", tuple(sorted(float(t) for t in self.thresholds)))
+        if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise ConfigError(f"voxel_size must be a positive number, got {self.voxel_size}")
+        if not (math.isfinite(self.dtu_max_dist) and self.dtu_max_dist > 0):
+            raise ConfigError(f"dtu_max_dist must be a positive number, got {self.dtu_max_dist}")
+        if not (math.isfinite(self.dtu_downsample) and self.dtu_downsample >= 0):
+            raise ConfigError(f"dtu_downsample must be >= 0 (0: off), got {self.dtu_downsample}")
+
+
+@dataclass
+class CloudMetrics:
+    """Result of :func:`evaluate_cloud` / :func:`cloud_metrics` (percentages in ``[0, 100]``).
+
+    Attributes:
+        thresholds: ``[T]`` sorted tolerances.
+        accuracy_pct, completeness_pct, f1_pct: ``[T]`` ETH3D-style, voxel-normalised.
+        accuracy_points_pct, completeness_points_pct: ``[T]`` plain fractions of points.
+        dtu_accuracy, dtu_completeness, dtu_overall: DTU-style mean distances (scene units;
+            ``nan`` when every distance is an outlier).
+        dtu_accuracy_outlier_pct, dtu_completeness_outlier_pct: % of distances ``>= dtu_max_dist``.
+        num_points, num_gt_points: sizes of the two clouds.
+    """
+
+    thresholds: tuple[float, ...]
+    accuracy_pct: tuple[float, ...]
+    completeness_pct: tuple[float, ...]
+    f1_pct: tuple[float, ...]
+    accuracy_points_pct: tuple[float, ...]
+    completeness_points_pct: tuple[float, ...]
+    dtu_accuracy: float
+    dtu_completeness: float
+    dtu_overall: float
+    dtu_accuracy_outlier_pct: float
+    dtu_completeness_outlier_pct: float
+    num_points: int
+    num_gt_points: int
+    config: EvaluateCloudConfig | None = None
+    output_path: Path | None = None
+
+    def to_json(self) -> dict:
+        def num(v: float) -> float | None:
+            return None if not math.isfinite(v) else float(v)
+
+        out = {k: getattr(self, k) for k in ("num_points", "num_gt_points")}
+        for key in (
+            "thresholds",
+            "accuracy_pct",
+            "completeness_pct",
+            "f1_pct",
+            "accuracy_points_pct",
+            "completeness_points_pct",
+        ):
+            out[key] = [num(v) for v in getattr(self, key)]
+        for key in (
+            "dtu_accuracy",
+            "dtu_completeness",
+            "dtu_overall",
+            "dtu_accuracy_outlier_pct",
+            "dtu_completeness_outlier_pct",
+        ):
+            out[key] = num(getattr(self, key))
+        return out
+
+
+def _cell_keys(points: np.ndarray, voxel_size: float, shift: float) -> np.ndarray:
+    """``[P]`` int64 index of the voxel of each point (ETH3D's ``CalcCellCoordinates``: floor)."""
+    cells = np.floor(points / voxel_size + shift).astype(np.int64)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) < 2**62:
+        return (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def _voxel_normalised_pct(points: np.ndarray, good: np.ndarray, voxel_size: float) -> np.ndarray:
+    """ETH3D's per-volume average: mean over occupied voxels of two grids (shifts 0 and 1/2) of
+    the fraction of ``good`` points in the voxel.
+
+    Args:
+        points: ``[P, 3]``; good: ``[T, P]`` bool. Returns ``[T]`` percentages.
+    """
+    ratios = []
+    for shift in (0.0, 0.5):
+        _, inverse, counts = np.unique(
+            _cell_keys(points, voxel_size, shift), return_inverse=True, return_counts=True
+        )
+        inverse = inverse.reshape(-1)
+        per_t = np.stack(
+            [np.bincount(inverse, weights=g, minlength=counts.size) for g in good.astype(np.float64)]
+        )
+        ratios.append(per_t / counts[None, :])
+    return 100.0 * np.concatenate(ratios, axis=1).mean(axis=1)
+
+
+def _dtu_mean(dist: np.ndarray, max_dist: float, mode: str) -> tuple[float, float]:
+    """``(mean distance, % outliers)`` with DTU's outlier rule."""
+    if dist.size == 0:
+        return float("nan"), float("nan")
+    outlier = dist >= max_dist
+    pct = 100.0 * float(outlier.mean())
+    if mode == "clamp":
+        return float(np.minimum(dist, max_dist).mean()), pct
+    kept = dist[~outlier]
+    return (float(kept.mean()) if kept.size else float("nan")), pct
+
+
+def _nn_distances(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``[len(source)]`` distance of each source point to its nearest target point (open3d KD-tree)."""
+    import open3d as o3d
+
+    if len(source) == 0:
+        return np.zeros(0)
+    if len(target) == 0:
+        return np.full(len(source), np.inf)
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source, dtype=np.float64)))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target, dtype=np.float64)))
+    return np.asarray(src.compute_point_cloud_distance(tgt), dtype=np.float64)
+
+
+def cloud_metrics(
+    points: np.ndarray,
+    gt_points: np.ndarray,
+    thresholds: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
+    voxel_size: float = 0.01,
+    dtu_max_dist: float = 0.5,
+    dtu_outliers: Literal["discard", "clamp"] = "discard",
+    dtu_downsample: float = 0.0,
+) -> CloudMetrics:
+    """ETH3D-style and DTU-style metrics of a reconstruction against a GT cloud (see the module doc).
+
+    Args:
+        points: ``[P, 3]`` reconstruction; gt_points: ``[G, 3]`` GT (``G >= 1``), same frame and units.
+        thresholds: tolerances in scene units (sorted internally).
+
+    An empty reconstruction scores 0 accuracy and completeness (as ETH3D) and ``nan`` DTU distances.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    gt_points = np.asarray(gt_points, dtype=np.float64).reshape(-1, 3)
+    if len(gt_points) == 0:
+        raise ShapeError("the GT cloud has no points")
+    thresholds = tuple(sorted(float(t) for t in thresholds))
+    _check_thresholds("thresholds", thresholds)
+    t = np.asarray(thresholds)[:, None]
+    d_gt = _nn_distances(gt_points, points)  # completeness: GT -> reconstruction
+    complete = d_gt[None, :] <= t
+    comp = _voxel_normalised_pct(gt_points, complete, voxel_size)
+    comp_points = 100.0 * complete.mean(axis=1)
+    if len(points):
+        d_rec = _nn_distances(points, gt_points)  # accuracy: reconstruction -> GT
+        accurate = d_rec[None, :] <= t
+        acc = _voxel_normalised_pct(points, accurate, voxel_size)
+        acc_points = 100.0 * accurate.mean(axis=1)
+    else:
+        d_rec = np.zeros(0)
+        acc = acc_points = np.zeros(len(thresholds))
+    f1 = np.where(acc + comp > 0, 2 * acc * comp / np.maximum(acc + comp, 1e-300), 0.0)
+    if dtu_downsample > 0 and len(points):
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(dtu_downsample)
+        d_rec_dtu = _nn_distances(np.asarray(pcd.points), gt_points)
+    else:
+        d_rec_dtu = d_rec
+    dtu_acc, acc_out = _dtu_mean(d_rec_dtu, dtu_max_dist, dtu_outliers)
+    dtu_comp, comp_out = _dtu_mean(d_gt if len(points) else np.zeros(0), dtu_max_dist, dtu_outliers)
+    return CloudMetrics(
+        thresholds=thresholds,
+        accuracy_pct=tuple(float(v) for v in acc),
+        completeness_pct=tuple(float(v) for v in comp),
+        f1_pct=tuple(float(v) for v in f1),
+        accuracy_points_pct=tuple(float(v) for v in acc_points),
+        completeness_points_pct=tuple(float(v) for v in comp_points),
+        dtu_accuracy=dtu_acc,
+        dtu_completeness=dtu_comp,
+        dtu_overall=0.5 * (dtu_acc + dtu_comp),
+        dtu_accuracy_outlier_pct=acc_out,
+        dtu_completeness_outlier_pct=comp_out,
+        num_points=len(points),
+        num_gt_points=len(gt_points),
+    )
+
+
+def _read_cloud(path: Path, what: str) -> np.ndarray:
+    """``[P, 3]`` float64 points of a PLY (or any format open3d reads)."""
+    import open3d as o3d
+
+    if not path.is_file():
+        raise ConfigError(f"{what} {str(path)!r} does not exist")
+    pcd = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pcd.points, dtype=np.float64)
+    if not np.isfinite(pts).all():
+        n_bad = int((~np.isfinite(pts).all(axis=1)).sum())
+        logger.warning("%s %s: dropping %d non-finite point(s)", what, path, n_bad)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+    return pts
+
+
+def evaluate_cloud(config: EvaluateCloudConfig) -> CloudMetrics:
+    """Evaluate ``config.cloud`` against ``config.gt``; write the metrics JSON atomically.
+
+    Raises:
+        ConfigError: a missing file.
+        WorkspaceError: an empty or unreadable GT cloud.
+    """
+    points = _read_cloud(Path(config.cloud), "reconstruction")
+    gt_points = _read_cloud(Path(config.gt), "GT cloud")
+    if len(gt_points) == 0:
+        raise WorkspaceError(f"GT cloud {str(config.gt)!r} has no points")
+    if len(points) == 0:
+        logger.warning("reconstruction %s has no points: accuracy and completeness are 0", config.cloud)
+    logger.info("evaluating %d points against %d GT points", len(points), len(gt_points))
+    metrics = cloud_metrics(
+        points,
+        gt_points,
+        thresholds=config.thresholds,
+        voxel_size=config.voxel_size,
+        dtu_max_dist=config.dtu_max_dist,
+        dtu_outliers=config.dtu_outliers,
+        dtu_downsample=config.dtu_downsample,
+    )
+    out = (
+        Path(config.output_path)
+        if config.output_path is not None
+        else Path(config.cloud).with_suffix(".metrics.json")
+    )
+    metrics.config = config
+    metrics.output_path = out
+    save_config(
+        config,
+        out,
+        colmap_pvs_version=__version__,
+        metrics=metrics.to_json(),
+        definition="ETH3D-style (all reconstruction points treated as observed) and DTU-style; "
+        "see colmap_pvs.evaluate",
+    )
+    return metrics

@@ -1,0 +1,48 @@
+"""Small geometry helpers shared by every step. Conventions: ``docs/CONVENTIONS.md``.
+
+- ``cam_from_world`` is ``[R | t]`` with ``x_cam = R x_world + t`` (COLMAP).
+- Camera axes are OpenCV's: +x right, +y down, +z forward.
+- Depth is the camera-frame z coordinate; 0 marks an invalid pixel.
+- Pixel ``(col, row)`` has its centre at continuous coordinate ``(col + 0.5, row + 0.5)``,
+  the convention of COLMAP's SfM and of its ``K``. Resizing an image by ``(sx, sy)``
+  therefore scales ``K`` exactly as ``diag(sx, sy, 1) @ K``.
+- ``torch.nn.functional.grid_sample`` is always called with ``align_corners=False``:
+  continuous coordinate ``u`` in ``[0, W]`` maps to ``2 u / W - 1`` in ``[-1, 1]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """``K`` of an image resized by ``(sx, sy)`` (new size = old size * s), exact for our pixel convention."""
+    S = np.diag([sx, sy, 1.0])
+    return S @ np.asarray(K, dtype=np.float64)
+
+
+def pixel_centers(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous coordinates ``(u, v)`` of every pixel centre, each ``[H, W]`` float64."""
+    v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    return u, v
+
+
+def backproject_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``[H, W, 3]`` of a depth map ``[H, W]`` (z = depth)."""
+    h, w = depth.shape
+    u, v = pixel_centers(h, w)
+    Kinv = np.linalg.inv(K)
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ Kinv.T
+    return rays * depth[..., None]
+
+
+def to_homogeneous(cam_from_world: np.ndarray) -> np.ndarray:
+    """``[3, 4]`` or ``[4, 4]`` pose to ``[4, 4]``."""
+    T = np.eye(4)
+    T[:3, :] = np.asarray(cam_from_world, dtype=np.float64)[:3, :]
+    return T
+
+
+def relative_pose(src_from_world: np.ndarray, ref_from_world: np.ndarray) -> np.ndarray:
+    """``[4, 4]`` transform taking reference-camera coordinates to source-camera coordinates."""
+    return to_homogeneous(src_from_world) @ np.linalg.inv(to_homogeneous(ref_from_world))

@@ -1,0 +1,72 @@
+"""Loading and resizing images with the exact intrinsics scale factors.
+
+EXIF orientation is ignored on purpose: COLMAP reads pixels as stored, and the sparse model's
+image sizes and poses refer to that pixel grid.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import ShapeError, WorkspaceError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["load_image", "read_image_size", "resize_image"]
+
+_READ_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+
+
+def load_image(path: str | os.PathLike) -> np.ndarray:
+    """Load an image as ``[H, W, 3]`` uint8 RGB (greyscale is expanded, alpha dropped, 16 bit reduced).
+
+    Raises:
+        WorkspaceError: the file is missing or cannot be decoded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise WorkspaceError(f"image file {str(path)!r} does not exist")
+    data = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(data, _READ_FLAGS) if data.size else None
+    if image is None:
+        raise WorkspaceError(f"image file {str(path)!r} could not be decoded (corrupt or unsupported format)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """``(width, height)`` of the image at ``path`` as COLMAP sees it (decodes the file)."""
+    height, width = load_image(path).shape[:2]
+    return width, height
+
+
+def resize_image(image: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float, float]:
+    """Shrink ``image`` (``[H, W]`` or ``[H, W, C]``) so that its longest side is ``<= max_image_size``.
+
+    New sizes are rounded half up to an integer (at least 1). ``max_image_size <= 0`` or an image
+    that already fits keeps the input unchanged.
+
+    Returns:
+        ``(resized, sx, sy)`` with ``sx = new_w / old_w`` and ``sy = new_h / old_h`` exactly, so the
+        intrinsics of the resized image are ``diag(sx, sy, 1) @ K``
+        (:func:`colmap_pvs.geometry.scale_intrinsics`).
+    """
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or image.shape[0] == 0 or image.shape[1] == 0:
+        raise ShapeError(f"expected a non-empty [H, W] or [H, W, C] image, got shape {image.shape}")
+    height, width = image.shape[:2]
+    longest = max(width, height)
+    if max_image_size <= 0 or longest <= max_image_size:
+        return image, 1.0, 1.0
+    scale = max_image_size / longest
+    new_w = max(1, min(max_image_size, math.floor(width * scale + 0.5)))
+    new_h = max(1, min(max_image_size, math.floor(height * scale + 0.5)))
+    resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
+    if image.ndim == 3 and resized.ndim == 2:
+        resized = resized[:, :, None]
+    return resized, new_w / width, new_h / height

@@ -1,0 +1,391 @@
+"""Binary PLY point clouds / meshes and COLMAP's ``.ply.vis`` visibility files.
+
+Point clouds are written exactly like COLMAP's ``WriteBinaryPlyPoints``: a
+``binary_little_endian 1.0`` PLY whose vertex element has the properties
+``float x y z``, ``float nx ny nz`` and ``uchar red green blue`` (in that order), so
+COLMAP's ``poisson_mesher`` / ``delaunay_mesher``, open3d and MeshLab all read it.
+
+The visibility file (COLMAP ``src/colmap/mvs/fusion.cc``, ``WritePointsVisibility``) is
+little-endian: ``uint64 num_points``, then per point ``uint32 num_visible_images``
+followed by that many ``uint32`` image indices. An image index is the position of the
+image in the dense workspace's sparse model (``mvs::Model``: the order in which the
+registered images are listed in ``sparse/images.bin``), not a COLMAP image id.
+``delaunay_mesher`` uses it to cast visibility rays; ``poisson_mesher`` ignores it.
+
+All writers are atomic (temporary file in the same folder, then rename).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import atomic_write_bytes
+from ..errors import MapFormatError, ShapeError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "PointCloud",
+    "write_point_cloud",
+    "read_point_cloud",
+    "write_mesh",
+    "read_mesh",
+    "write_visibility",
+    "read_visibility",
+]
+
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """A coloured, oriented point cloud.
+
+    Attributes:
+        xyz: ``[N, 3]`` float32 world coordinates.
+        normals: ``[N, 3]`` float32 unit normals (zero where unknown).
+        colors: ``[N, 3]`` uint8 RGB.
+    """
+
+    xyz: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def _check_rows(name: str, array: np.ndarray | None, n: int, path: Path) -> None:
+    if array is not None and (array.ndim != 2 or array.shape != (n, 3)):
+        raise ShapeError(f"cannot write {str(path)!r}: {name} must be [{n}, 3], got shape {array.shape}")
+
+
+def write_point_cloud(
+    path: str | os.PathLike,
+    xyz: np.ndarray,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """Write a binary little-endian PLY in COLMAP's fused-cloud layout, atomically.
+
+    Args:
+        xyz: ``[N, 3]`` positions (stored as float32).
+        normals: ``[N, 3]`` normals or ``None`` (written as zeros).
+        colors: ``[N, 3]`` uint8 RGB or ``None`` (written as zeros).
+    """
+    path = Path(path)
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ShapeError(f"cannot write {str(path)!r}: xyz must be [N, 3], got shape {xyz.shape}")
+    n = xyz.shape[0]
+    normals = None if normals is None else np.asarray(normals)
+    colors = None if colors is None else np.asarray(colors)
+    _check_rows("normals", normals, n, path)
+    _check_rows("colors", colors, n, path)
+    dtype = np.dtype(
+        [
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("nx", "<f4"),
+            ("ny", "<f4"),
+            ("nz", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+        ]
+    )
+    rec = np.zeros(n, dtype=dtype)
+    for i, k in enumerate("xyz"):
+        rec[k] = xyz[:, i]
+    if normals is not None:
+        for i, k in enumerate(("nx", "ny", "nz")):
+            rec[k] = normals[:, i]
+    if colors is not None:
+        for i, k in enumerate(("red", "green", "blue")):
+            rec[k] = colors[:, i]
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property float nx\nproperty float ny\nproperty float nz\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "end_header\n"
+    )
+    return atomic_write_bytes(path, header.encode("ascii") + rec.tobytes())
+
+
+def _parse_header(data: bytes, path: Path) -> tuple[str, list[tuple[str, int, list[tuple]]], int]:
+    """``(format, [(element, count, [(prop, dtype) or (prop, 'list', count_t, item_t)])], body_offset)``."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise MapFormatError(f"{str(path)!r} is not a PLY file (no 'ply' magic or 'end_header')")
+    nl = data.find(b"\n", end)
+    if nl < 0:
+        raise MapFormatError(f"{str(path)!r}: truncated PLY header")
+    fmt = ""
+    elements: list[tuple[str, int, list[tuple]]] = []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        parts = line.split()
+        if not parts or parts[0] in ("ply", "comment", "obj_info"):
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[0] == "property":
+            if not elements:
+                raise MapFormatError(f"{str(path)!r}: PLY property before any element: {line!r}")
+            if parts[1] == "list":
+                elements[-1][2].append((parts[4], "list", _PLY_TYPES[parts[2]], _PLY_TYPES[parts[3]]))
+            else:
+                if parts[1] not in _PLY_TYPES:
+                    raise MapFormatError(f"{str(path)!r}: unknown PLY property type {parts[1]!r}")
+                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+    return fmt, elements, nl + 1
+
+
+def _read_elements(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    path = Path(path)
+    if not path.is_file():
+        raise MapFormatError(f"PLY file {str(path)!r} does not exist")
+    data = path.read_bytes()
+    fmt, elements, offset = _parse_header(data, path)
+    out: dict[str, dict[str, np.ndarray]] = {}
+    if fmt == "ascii":
+        tokens = data[offset:].split()
+        pos = 0
+        for name, count, props in elements:
+            cols: dict[str, list] = {p[0]: [] for p in props}
+            for _ in range(count):
+                for p in props:
+                    if p[1] == "list":
+                        k = int(tokens[pos])
+                        cols[p[0]].append(np.array(tokens[pos + 1 : pos + 1 + k], dtype=p[3]))
+                        pos += 1 + k
+                    else:
+                        cols[p[0]].append(tokens[pos])
+                        pos += 1
+            out[name] = {
+                k: (v if props[i][1] == "list" else np.array(v, dtype=props[i][1]))
+                for i, (k, v) in enumerate(cols.items())
+            }
+        return out
+    if fmt not in ("binary_little_endian", "binary_big_endian"):
+        raise MapFormatError(f"{str(path)!r}: unsupported PLY format {fmt!r}")
+    order = "<" if fmt == "binary_little_endian" else ">"
+    for name, count, props in elements:
+        if all(p[1] != "list" for p in props):
+            dt = np.dtype([(p[0], order + p[1]) for p in props])
+            need = dt.itemsize * count
+            if offset + need > len(data):
+                raise MapFormatError(f"{str(path)!r}: truncated PLY body in element {name!r}")
+            rec = np.frombuffer(data, dtype=dt, count=count, offset=offset)
+            offset += need
+            out[name] = {p[0]: rec[p[0]].astype(p[1]) for p in props}
+            continue
+        # Lists (faces): fast path for a single list property with a constant length.
+        if len(props) == 1 and count > 0:
+            _, _, ct, it = props[0]
+            k = int(np.frombuffer(data, dtype=order + ct, count=1, offset=offset)[0])
+            dt = np.dtype([("n", order + ct), ("v", order + it, (k,))])
+            if offset + dt.itemsize * count <= len(data):
+                rec = np.frombuffer(data, dtype=dt, count=count, offset=offset)
+                if np.all(rec["n"] == k):
+                    out[name] = {props[0][0]: rec["v"].astype(it)}
+                    offset += dt.itemsize * count
+                    continue
+        cols = {p[0]: [] for p in props}
+        for _ in range(count):
+            for p in props:
+                if p[1] == "list":
+                    k = int(np.frombuffer(data, dtype=order + p[2], count=1, offset=offset)[0])
+                    offset += np.dtype(p[2]).itemsize
+                    cols[p[0]].append(np.frombuffer(data, dtype=order + p[3], count=k, offset=offset))
+                    offset += k * np.dtype(p[3]).itemsize
+                else:
+                    cols[p[0]].append(np.frombuffer(data, dtype=order + p[1], count=1, offset=offset)[0])
+                    offset += np.dtype(p[1]).itemsize
+        out[name] = cols
+    return out
+
+
+def read_point_cloud(path: str | os.PathLike) -> PointCloud:
+    """Read a PLY point cloud (binary or ASCII); missing normals/colours come back as zeros."""
+    path = Path(path)
+    vertex = _read_elements(path).get("vertex")
+    if vertex is None or not all(k in vertex for k in "xyz"):
+        raise MapFormatError(f"{str(path)!r} has no vertex element with x, y, z")
+    n = len(vertex["x"])
+    xyz = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float32)
+    normals = (
+        np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+        if all(k in vertex for k in ("nx", "ny", "nz"))
+        else np.zeros((n, 3), np.float32)
+    )
+    colors = (
+        np.stack([vertex[k] for k in ("red", "green", "blue")], axis=1).astype(np.uint8)
+        if all(k in vertex for k in ("red", "green", "blue"))
+        else np.zeros((n, 3), np.uint8)
+    )
+    return PointCloud(xyz=xyz, normals=normals, colors=colors)
+
+
+def write_mesh(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """Write a triangle mesh as binary little-endian PLY, atomically.
+
+    Args:
+        vertices: ``[V, 3]`` positions (float32).
+        faces: ``[F, 3]`` vertex indices (int32).
+        normals: optional ``[V, 3]`` vertex normals.
+        colors: optional ``[V, 3]`` uint8 vertex colours.
+    """
+    path = Path(path)
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ShapeError(f"cannot write {str(path)!r}: vertices must be [V, 3], got shape {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ShapeError(f"cannot write {str(path)!r}: faces must be [F, 3], got shape {faces.shape}")
+    nv = vertices.shape[0]
+    if faces.size and (faces.min() < 0 or faces.max() >= nv):
+        raise ShapeError(f"cannot write {str(path)!r}: face indices out of range [0, {nv})")
+    normals = None if normals is None else np.asarray(normals)
+    colors = None if colors is None else np.asarray(colors)
+    _check_rows("normals", normals, nv, path)
+    _check_rows("colors", colors, nv, path)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    props = ["property float x", "property float y", "property float z"]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        props += ["property float nx", "property float ny", "property float nz"]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        props += ["property uchar red", "property uchar green", "property uchar blue"]
+    rec = np.zeros(nv, dtype=np.dtype(fields))
+    for i, k in enumerate("xyz"):
+        rec[k] = vertices[:, i]
+    if normals is not None:
+        for i, k in enumerate(("nx", "ny", "nz")):
+            rec[k] = normals[:, i]
+    if colors is not None:
+        for i, k in enumerate(("red", "green", "blue")):
+            rec[k] = colors[:, i]
+    frec = np.zeros(faces.shape[0], dtype=np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+    frec["n"] = 3
+    frec["v"] = faces
+    header = (
+        "\n".join(
+            [
+                "ply",
+                "format binary_little_endian 1.0",
+                f"element vertex {nv}",
+                *props,
+                f"element face {faces.shape[0]}",
+                "property list uchar int vertex_indices",
+                "end_header",
+            ]
+        )
+        + "\n"
+    )
+    return atomic_write_bytes(path, header.encode("ascii") + rec.tobytes() + frec.tobytes())
+
+
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle mesh PLY: ``(vertices [V, 3] float64, faces [F, 3] int64)``."""
+    path = Path(path)
+    el = _read_elements(path)
+    vertex = el.get("vertex")
+    if vertex is None:
+        raise MapFormatError(f"{str(path)!r} has no vertex element")
+    vertices = np.stack([np.asarray(vertex[k], dtype=np.float64) for k in "xyz"], axis=1)
+    face = el.get("face", {})
+    key = next((k for k in face if re.match(r"vertex_ind(ices|ex)", k)), None)
+    if key is None:
+        return vertices, np.zeros((0, 3), np.int64)
+    f = face[key]
+    faces = (
+        np.asarray(f, dtype=np.int64)
+        if not isinstance(f, list)
+        else np.array([np.asarray(x, dtype=np.int64) for x in f if len(x) == 3]).reshape(-1, 3)
+    )
+    return vertices, faces
+
+
+def write_visibility(path: str | os.PathLike, offsets: np.ndarray, image_indices: np.ndarray) -> Path:
+    """Write a COLMAP ``.ply.vis`` file from CSR visibility, atomically.
+
+    Args:
+        offsets: ``[N + 1]`` int; point ``i`` is seen by ``image_indices[offsets[i]:offsets[i + 1]]``.
+        image_indices: ``[T]`` image indices into the workspace's sparse model order.
+    """
+    path = Path(path)
+    offsets = np.asarray(offsets, dtype=np.int64)
+    image_indices = np.asarray(image_indices, dtype=np.int64)
+    if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != image_indices.size:
+        raise ShapeError(f"cannot write {str(path)!r}: offsets must be [N + 1] from 0 to len(image_indices)")
+    counts = np.diff(offsets)
+    if (counts < 0).any() or (image_indices < 0).any() or (image_indices > np.iinfo(np.uint32).max).any():
+        raise ShapeError(f"cannot write {str(path)!r}: negative counts or image indices out of uint32 range")
+    n = counts.size
+    body = np.empty(n + image_indices.size, dtype="<u4")
+    count_pos = offsets[:-1] + np.arange(n)
+    body[count_pos] = counts
+    mask = np.ones(body.size, dtype=bool)
+    mask[count_pos] = False
+    body[mask] = image_indices
+    return atomic_write_bytes(path, np.array([n], dtype="<u8").tobytes() + body.tobytes())
+
+
+def read_visibility(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a COLMAP ``.ply.vis`` file: ``(offsets [N + 1] int64, image_indices [T] int64)``."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFormatError(f"visibility file {str(path)!r} does not exist")
+    data = path.read_bytes()
+    if len(data) < 8 or (len(data) - 8) % 4:
+        raise MapFormatError(f"{str(path)!r} is not a COLMAP .vis file (size {len(data)} bytes)")
+    n = int(np.frombuffer(data, dtype="<u8", count=1)[0])
+    body = np.frombuffer(data, dtype="<u4", offset=8).astype(np.int64)
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    keep = np.ones(body.size, dtype=bool)
+    pos = 0
+    for i in range(n):  # sequential by nature; fine for the sizes we read back in tests
+        if pos >= body.size:
+            raise MapFormatError(f"{str(path)!r}: truncated after {i} of {n} points")
+        k = int(body[pos])
+        keep[pos] = False
+        pos += 1 + k
+        offsets[i + 1] = offsets[i] + k
+    if pos != body.size:
+        raise MapFormatError(f"{str(path)!r}: {body.size - pos} trailing values (or truncated)")
+    return offsets, body[keep]

@@ -1,0 +1,92 @@
+"""Depth regression, confidence and cascade hypothesis ranges (paper eq. 5 and sec. 3.4).
+
+Hypotheses are described as in :mod:`.warping`: plane ``i`` has inverse depth
+``inv_start - i * inv_step`` (``inv_start``/``inv_step`` broadcastable to ``[B, 1, h, w]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+
+@dataclass
+class Regression:
+    """Result of :func:`regress_inverse_depth` (all ``[B, h, w]`` except the ``[B, 1, h, w]`` moments)."""
+
+    depth: torch.Tensor
+    inv_mean: torch.Tensor
+    inv_sigma: torch.Tensor
+    index: torch.Tensor
+
+
+def regress_inverse_depth(prob: torch.Tensor, inv_start: torch.Tensor, inv_step: torch.Tensor) -> Regression:
+    """Inverse-depth regression (paper eq. 5): ``depth = 1 / sum_d P(d) / d_d``.
+
+    Args:
+        prob: ``[B, D, h, w]`` probability volume (softmax over ``D``).
+        inv_start, inv_step: the hypotheses, broadcastable to ``[B, 1, h, w]``.
+
+    Returns:
+        :class:`Regression` with the depth ``[B, h, w]``, the mean and standard deviation of
+        the inverse depth under ``prob`` (``[B, 1, h, w]``, used for the next stage's range)
+        and the expected plane index ``[B, h, w]``.
+    """
+    D = prob.shape[1]
+    idx = torch.arange(D, dtype=prob.dtype, device=prob.device).view(1, -1, 1, 1)
+    e_idx = (prob * idx).sum(1, keepdim=True)
+    e_idx2 = (prob * idx * idx).sum(1, keepdim=True)
+    var_idx = (e_idx2 - e_idx * e_idx).clamp_min(0.0)
+    inv_mean = inv_start - e_idx * inv_step
+    inv_sigma = torch.sqrt(var_idx + 1e-12) * inv_step
+    depth = 1.0 / inv_mean.clamp_min(1e-12)
+    return Regression(depth=depth.squeeze(1), inv_mean=inv_mean, inv_sigma=inv_sigma, index=e_idx.squeeze(1))
+
+
+def probability_confidence(prob: torch.Tensor, index: torch.Tensor, planes: int = 4) -> torch.Tensor:
+    """Probability mass of the ``planes`` hypotheses nearest the expected index (MVSNet-style).
+
+    ``prob`` ``[B, D, h, w]``, ``index`` ``[B, h, w]`` -> ``[B, h, w]`` in ``[0, 1]``. For
+    ``planes=4`` the window is ``floor(index) - 1 ... floor(index) + 2``.
+    """
+    D = prob.shape[1]
+    planes = min(planes, D)
+    cs = F.pad(torch.cumsum(prob, 1), (0, 0, 0, 0, 1, 0))  # [B, D+1, h, w]
+    start = torch.round(index.detach() - (planes - 1) / 2.0).long().clamp(0, D - planes).unsqueeze(1)
+    mass = cs.gather(1, start + planes) - cs.gather(1, start)
+    return mass.squeeze(1).clamp(0.0, 1.0)
+
+
+def next_stage_range(
+    inv_mean: torch.Tensor,
+    inv_sigma: torch.Tensor,
+    inv_step: torch.Tensor,
+    size: tuple[int, int],
+    num_planes: int,
+    *,
+    k: float,
+    min_halfwidth_planes: float,
+    inv_lo: torch.Tensor,
+    inv_hi: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel hypothesis range of the next (finer) stage (UCSNet-style uncertainty awareness).
+
+    The range is ``mean +- max(k * sigma, min_halfwidth_planes * inv_step)`` in inverse depth,
+    computed at the current resolution, bilinearly upsampled to ``size`` and moved (then
+    clipped) inside ``[inv_lo, inv_hi] = [1/depth_max, 1/depth_min]`` (``[B]``). Gradients do
+    not flow through the range.
+
+    Returns ``(inv_start, inv_step)``, each ``[B, 1, *size]``.
+    """
+    inv_mean, inv_sigma = inv_mean.detach(), inv_sigma.detach()
+    half = torch.maximum(k * inv_sigma, min_halfwidth_planes * inv_step.detach().expand_as(inv_sigma))
+    center = F.interpolate(inv_mean, size=size, mode="bilinear", align_corners=False)
+    half = F.interpolate(half, size=size, mode="bilinear", align_corners=False)
+    lo_b, hi_b = inv_lo.view(-1, 1, 1, 1), inv_hi.view(-1, 1, 1, 1)
+    half = torch.minimum(half, (hi_b - lo_b) / 2)
+    center = torch.maximum(torch.minimum(center, hi_b - half), lo_b + half)
+    inv_start = center + half
+    step = (2.0 * half / (num_planes - 1)).clamp_min(1e-12)
+    return inv_start, step

@@ -1,0 +1,80 @@
+"""Shared 2D feature extraction (paper sec. 3.1) with FPN-style finer outputs for the cascade.
+
+Also the fixed, illumination-normalised matching channels of the ``normalized_channels`` switch.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .layers import Conv, ConvBnReLU, conv_nd
+
+
+class FeatureNet(nn.Module):
+    """2D CNN shared by all views.
+
+    Input ``[B, 3, H, W]`` (``H, W`` divisible by 4); outputs, coarse to fine,
+    ``[B, F0, H/4, W/4]``, ``[B, F1, H/2, W/2]``, ``[B, F2, H, W]`` with
+    ``(F0, F1, F2) = channels``. Only the first ``levels`` outputs are computed.
+    """
+
+    def __init__(self, channels: tuple[int, ...] = (32, 16, 8)) -> None:
+        super().__init__()
+        c0, c1, c2 = 8, 16, 32  # encoder widths at H, H/2, H/4
+        f0, f1, f2 = channels
+        self.enc0 = nn.Sequential(ConvBnReLU(3, c0, dims=2), ConvBnReLU(c0, c0, dims=2))
+        self.enc1 = nn.Sequential(
+            ConvBnReLU(c0, c1, dims=2, kernel=5, stride=2),
+            ConvBnReLU(c1, c1, dims=2),
+            ConvBnReLU(c1, c1, dims=2),
+        )
+        self.enc2 = nn.Sequential(
+            ConvBnReLU(c1, c2, dims=2, kernel=5, stride=2),
+            ConvBnReLU(c2, c2, dims=2),
+            ConvBnReLU(c2, c2, dims=2),
+        )
+        self.out0 = Conv(c2, f0, dims=2, kernel=1)
+        # Top-down pathway: reduce, upsample x2 (nearest), add the lateral, smooth.
+        self.top1 = Conv(c2, c1, dims=2, kernel=1)
+        self.lat1 = Conv(c1, c1, dims=2, kernel=1)
+        self.out1 = Conv(c1, f1, dims=2, kernel=3)
+        self.top2 = Conv(c1, c0, dims=2, kernel=1)
+        self.lat2 = Conv(c0, c0, dims=2, kernel=1)
+        self.out2 = Conv(c0, f2, dims=2, kernel=3)
+
+    def forward(self, x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:
+        e0 = self.enc0(x)
+        e1 = self.enc1(e0)
+        e2 = self.enc2(e1)
+        outs = [self.out0(e2)]
+        if levels >= 2:
+            inner1 = F.interpolate(self.top1(e2), scale_factor=2.0, mode="nearest") + self.lat1(e1)
+            outs.append(self.out1(inner1))
+            if levels >= 3:
+                inner2 = F.interpolate(self.top2(inner1), scale_factor=2.0, mode="nearest") + self.lat2(e0)
+                outs.append(self.out2(inner2))
+        return outs
+
+
+def normalized_intensity_channels(images: torch.Tensor, count: int, scale: int = 4) -> torch.Tensor:
+    """Fixed, illumination-normalised grayscale channels.
+
+    ``images`` ``[B, 3, H, W]`` in [0, 1] -> ``[B, count, H/scale, W/scale]``: the grayscale
+    image, average-pooled by ``scale``, then normalised by its local mean and standard
+    deviation over ``(2j+3) x (2j+3)`` windows, ``j = 0..count-1`` (invariant to affine
+    intensity changes). Not learned.
+    """
+    gray = 0.299 * images[:, 0:1] + 0.587 * images[:, 1:2] + 0.114 * images[:, 2:3]
+    gray = F.avg_pool2d(gray, scale)
+    chans = []
+    for j in range(count):
+        k = 2 * j + 3
+        w = torch.full((1, 1, k, k), 1.0 / (k * k), dtype=gray.dtype, device=gray.device)
+        padded = F.pad(gray, (k // 2,) * 4, mode="replicate")
+        mean = conv_nd(padded, w, None, 1, 0)
+        sq = conv_nd(padded * padded, w, None, 1, 0)
+        std = (sq - mean * mean).clamp_min(0).sqrt()
+        chans.append((gray - mean) / (std + 0.02))
+    return torch.cat(chans, 1)

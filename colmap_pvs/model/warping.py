@@ -1,0 +1,116 @@
+"""Differentiable plane-sweep warping of source features onto reference depth hypotheses.
+
+Conventions (``docs/CONVENTIONS.md``):
+
+- pixel ``(col, row)`` of a ``h x w`` map has its centre at continuous coordinate
+  ``(col + 0.5, row + 0.5)``; ``K`` is given for that map (a map downsampled by ``s``
+  from a padded image uses ``diag(1/s, 1/s, 1) K``, exactly);
+- ``grid_sample`` uses ``align_corners=False``: continuous ``u in [0, w]`` maps to
+  ``2 u / w - 1``;
+- depth is the camera-frame z; ``cam_from_world`` is ``[4, 4]`` with ``x_cam = R x_world + t``.
+
+Depth hypotheses are uniform in *inverse* depth. A set of hypotheses is described by
+``inv_start`` (the inverse depth of plane 0, the nearest plane) and ``inv_step`` (the
+positive inverse-depth spacing): plane ``i`` has inverse depth ``inv_start - i * inv_step``,
+so depth increases with the plane index.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+_Z_EPS = 1e-6
+
+
+def scale_intrinsics(K: torch.Tensor, scale: float) -> torch.Tensor:
+    """``K`` ``[..., 3, 3]`` of a map whose size is ``scale`` times the original's: ``diag(s, s, 1) @ K``."""
+    S = torch.tensor([scale, scale, 1.0], dtype=K.dtype, device=K.device)
+    return K * S.view(*([1] * (K.dim() - 2)), 3, 1)
+
+
+def plane_range(
+    depth_min: torch.Tensor, depth_max: torch.Tensor, num_planes: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fronto-parallel planes uniform in inverse depth between ``depth_min`` and ``depth_max`` ``[B]``.
+
+    Returns ``(inv_start, inv_step)``, each ``[B, 1, 1, 1]``: plane 0 is at ``depth_min``,
+    plane ``num_planes - 1`` at ``depth_max``.
+    """
+    inv_start = 1.0 / depth_min
+    inv_step = (1.0 / depth_min - 1.0 / depth_max) / (num_planes - 1)
+    return inv_start.view(-1, 1, 1, 1), inv_step.view(-1, 1, 1, 1)
+
+
+def hypothesis_depths(inv_start: torch.Tensor, inv_step: torch.Tensor, num_planes: int) -> torch.Tensor:
+    """Depths of the planes, ``[B, D, h, w]`` (``inv_start``/``inv_step`` are ``[B, 1, h|1, w|1]``)."""
+    idx = torch.arange(num_planes, dtype=inv_start.dtype, device=inv_start.device).view(1, -1, 1, 1)
+    return 1.0 / (inv_start - idx * inv_step)
+
+
+def homography_grid(
+    K_ref: torch.Tensor,
+    K_src: torch.Tensor,
+    src_from_ref: torch.Tensor,
+    depths: torch.Tensor,
+    height: int,
+    width: int,
+) -> torch.Tensor:
+    """Sampling grid that maps each reference pixel at each hypothesis depth into the source map.
+
+    Args:
+        K_ref, K_src: ``[B, 3, 3]`` intrinsics of the reference and source maps (size ``height x width``).
+        src_from_ref: ``[B, 4, 4]`` rigid transform from reference to source camera coordinates.
+        depths: ``[B, D]`` (fronto-parallel planes) or ``[B, D, height, width]`` (per-pixel hypotheses).
+
+    Returns:
+        ``[B, D * height, width, 2]`` normalised ``(x, y)`` for ``grid_sample(align_corners=False)``:
+        reference pixel ``(col, row)`` at continuous ``(col + 0.5, row + 0.5)`` is back-projected
+        to depth ``z``, moved into the source camera and projected to continuous ``(u, v)``,
+        stored as ``(2u/width - 1, 2v/height - 1)``. Points behind the source camera get ``-2``
+        (outside the map, so they sample zeros).
+    """
+    B = K_ref.shape[0]
+    dtype, device = K_ref.dtype, K_ref.device
+    D = depths.shape[1]
+    # Compose the per-batch 3x3 / 3x1 maps in float64 for accuracy.
+    K_ref64, K_src64, T64 = K_ref.double(), K_src.double(), src_from_ref.double()
+    A = (K_src64 @ T64[:, :3, :3] @ torch.linalg.inv(K_ref64)).to(dtype)  # [B, 3, 3]
+    b = (K_src64 @ T64[:, :3, 3:]).to(dtype)  # [B, 3, 1]
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=device) + 0.5,
+        torch.arange(width, dtype=dtype, device=device) + 0.5,
+        indexing="ij",
+    )
+    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)], 0)  # [3, hw]
+    rays = A @ pix  # [B, 3, hw]
+    if depths.dim() == 2:
+        d = depths.view(B, 1, D, 1)
+    else:
+        d = depths.reshape(B, 1, D, height * width)
+    p = rays.unsqueeze(2) * d + b.unsqueeze(-1)  # [B, 3, D, hw]
+    z = p[:, 2]
+    valid = z > _Z_EPS
+    z = torch.where(valid, z, torch.ones_like(z))
+    gx = (2.0 / width) * p[:, 0] / z - 1.0
+    gy = (2.0 / height) * p[:, 1] / z - 1.0
+    outside = torch.full_like(gx, -2.0)
+    gx = torch.where(valid, gx.clamp(-2.0, 2.0), outside)
+    gy = torch.where(valid, gy.clamp(-2.0, 2.0), outside)
+    return torch.stack([gx, gy], -1).view(B, D * height, width, 2)
+
+
+def warp_features(src: torch.Tensor, grid: torch.Tensor, num_planes: int) -> torch.Tensor:
+    """Bilinearly sample ``src`` ``[B, C, h, w]`` at ``grid`` ``[B, D*h, w, 2]`` -> ``[B, C, D, h, w]``.
+
+    Zero outside the source map (``padding_mode="zeros"``, ``align_corners=False``).
+    """
+    B, C, h, w = src.shape
+    out = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    return out.view(B, C, num_planes, h, w)
+
+
+def relative_pose(cam_from_world: torch.Tensor, src: int, ref: int = 0) -> torch.Tensor:
+    """``src_from_ref`` ``[B, 4, 4]`` from ``cam_from_world`` ``[B, N, 4, 4]`` (computed in float64)."""
+    T = cam_from_world.double()
+    return (T[:, src] @ torch.linalg.inv(T[:, ref])).to(cam_from_world.dtype)

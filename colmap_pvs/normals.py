@@ -1,0 +1,68 @@
+"""Camera-facing unit normals from a depth map (conventions: ``docs/CONVENTIONS.md``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import ShapeError
+from .geometry import backproject_depth
+
+
+def depth_to_normals(depth: np.ndarray, K: np.ndarray, *, max_relative_jump: float = 0.05) -> np.ndarray:
+    """Per-pixel normals of a depth map, in the camera frame.
+
+    Each normal is the cross product of the horizontal and vertical tangents of the
+    back-projected surface, taken from central differences (one-sided where a
+    neighbour is invalid or across a depth discontinuity larger than
+    ``max_relative_jump`` relative depth). Normals are unit length and face the
+    camera: ``dot(n, x) < 0`` for the pixel's 3D point ``x``. Pixels without a valid
+    tangent in both directions get a zero normal.
+
+    Args:
+        depth: ``[H, W]`` z-depth, 0 = invalid.
+        K: ``[3, 3]`` intrinsics of this depth map's resolution.
+
+    Returns:
+        ``[H, W, 3]`` float32 normals (zero where undefined).
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ShapeError(f"depth must be [H, W], got shape {depth.shape}")
+    points = backproject_depth(depth, K)
+    valid = depth > 0
+
+    def tangent(axis: int) -> tuple[np.ndarray, np.ndarray]:
+        fwd = np.zeros_like(points)
+        bwd = np.zeros_like(points)
+        ok_f = np.zeros(depth.shape, dtype=bool)
+        ok_b = np.zeros(depth.shape, dtype=bool)
+        sl_a = [slice(None), slice(None)]
+        sl_b = [slice(None), slice(None)]
+        sl_a[axis] = slice(1, None)
+        sl_b[axis] = slice(None, -1)
+        sa, sb = tuple(sl_a), tuple(sl_b)
+        diff = points[sa] - points[sb]
+        d_a, d_b = depth[sa], depth[sb]
+        smooth = (
+            valid[sa]
+            & valid[sb]
+            & (np.abs(d_a - d_b) <= max_relative_jump * np.minimum(d_a, d_b).clip(min=1e-12))
+        )
+        fwd[sb] = diff
+        ok_f[sb] = smooth
+        bwd[sa] = diff
+        ok_b[sa] = smooth
+        both = ok_f & ok_b
+        t = np.where(ok_f[..., None], fwd, bwd)
+        t = np.where(both[..., None], 0.5 * (fwd + bwd), t)
+        return t, (ok_f | ok_b) & valid
+
+    tu, ok_u = tangent(1)
+    tv, ok_v = tangent(0)
+    n = np.cross(tu, tv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    ok = ok_u & ok_v & (norm[..., 0] > 0)
+    n = np.where(ok[..., None], n / np.maximum(norm, 1e-300), 0.0)
+    facing = np.sum(n * points, axis=-1) > 0
+    n[facing] *= -1.0
+    return n.astype(np.float32)

@@ -1,0 +1,303 @@
+"""The ``stereo`` step: PVSNet depth and normal maps for every image of a COLMAP workspace.
+
+A drop-in replacement for COLMAP's ``patch_match_stereo``: it writes
+``stereo/depth_maps/NAME.{geometric,photometric}.bin`` and
+``stereo/normal_maps/NAME.{geometric,photometric}.bin`` plus ``stereo/fusion.cfg``, so
+COLMAP's own ``stereo_fusion`` runs on the result unchanged.
+
+As in COLMAP, the reference images are those listed in ``stereo/patch-match.cfg``
+when it exists (explicit source lists, ``__auto__, N`` and ``__all__`` are all
+understood), otherwise every registered image with sparse points.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .config import replace_config, save_config
+from .errors import CheckpointError, ColmapPVSError, WorkspaceError
+from .geometry import to_homogeneous
+from .io.images import load_image, resize_image
+from .io.maps import (
+    fusion_intrinsics,
+    save_depth_preview,
+    save_normal_preview,
+    save_scalar_preview,
+    write_depth_map,
+    write_normal_map,
+)
+from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
+from .normals import depth_to_normals
+from .types import Image, SparseModel
+from .views import ViewSelection, ViewSelectionConfig, resolve_sources, select_views
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
+CONFIG_FILENAME = "colmap_pvs_stereo.json"
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Settings of the ``stereo`` step (the single source of its defaults and CLI flags)."""
+
+    workspace_path: Path = field(metadata={"help": "COLMAP dense workspace (images/, sparse/, stereo/)"})
+    num_views: int = field(default=5, metadata={"help": "views per reference: reference + N-1 sources"})
+    max_image_size: int = field(
+        default=640, metadata={"help": "longest image side for inference; <= 0 keeps full size"}
+    )
+    checkpoint: Path | None = field(
+        default=None, metadata={"help": "model checkpoint (.pt); default: the shipped checkpoint"}
+    )
+    device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device"})
+    overwrite: bool = field(default=False, metadata={"help": "recompute images whose maps already exist"})
+    min_confidence: float = field(
+        default=0.3, metadata={"help": "pixels with confidence below this are set invalid (depth 0)"}
+    )
+    sparse_guidance: Literal["checkpoint", "on", "off"] = field(
+        default="checkpoint",
+        metadata={"help": "modulate the cost volume around projected sparse points (Guided Stereo)"},
+    )
+    previews: bool = field(
+        default=False, metadata={"help": "write PNG previews of depth, normals, confidence, visibility"}
+    )
+    threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
+    min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
+
+
+@dataclass
+class StereoResult:
+    """What :func:`run_stereo` did: processed, skipped (with reasons) and timing."""
+
+    workspace: Workspace
+    processed: list[str] = field(default_factory=list)
+    already_done: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    seconds_per_image: float = 0.0
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks CUDA when available."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ColmapPVSError("--device cuda was requested but torch.cuda.is_available() is False")
+    return torch.device(name)
+
+
+def load_stereo_model(config: StereoConfig, device: torch.device):
+    """Load the checkpoint (``weights_only=True``) and apply the config's overrides."""
+    from .model import PVSNet, load_checkpoint
+
+    path = Path(config.checkpoint) if config.checkpoint is not None else DEFAULT_CHECKPOINT
+    if config.checkpoint is None and not path.exists():
+        raise CheckpointError(
+            f"no trained default checkpoint is shipped at {str(path)!r}; pass --checkpoint PATH "
+            "(random weights never produce maps)"
+        )
+    model, meta = load_checkpoint(path, map_location="cpu")
+    if config.sparse_guidance != "checkpoint":
+        want = config.sparse_guidance == "on"
+        if model.config.sparse_guidance != want:
+            new_cfg = replace_config(model.config, sparse_guidance=want)
+            state = model.state_dict()
+            model = PVSNet(new_cfg)
+            model.load_state_dict(state)
+    model.eval().to(device)
+    return model, path, meta
+
+
+def choose_references(ws: Workspace, model: SparseModel) -> dict[str, object]:
+    """Reference names mapped to their source spec (``None``: automatic selection)."""
+    if ws.patch_match_cfg.exists():
+        specs = read_patch_match_cfg(ws.patch_match_cfg)
+        for name in specs:
+            if name not in model.image_ids_by_name:
+                raise WorkspaceError(
+                    f"{ws.patch_match_cfg}: reference image {name!r} is not in the sparse model"
+                )
+        return dict(specs)
+    return {img.name: None for img in sorted(model.images.values(), key=lambda im: im.name)}
+
+
+def _sparse_depth_map(model: SparseModel, image: Image, K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``[H, W]`` depth of the image's own sparse points projected with ``K`` (0 elsewhere)."""
+    out = np.zeros((height, width), dtype=np.float32)
+    if image.point3D_ids.size == 0:
+        return out
+    rows = np.searchsorted(model.points.ids, image.point3D_ids)
+    rows = rows[(rows < len(model.points)) & (model.points.ids[rows.clip(max=len(model.points) - 1)]
+                                               == image.point3D_ids)]
+    x = model.points.xyz[rows] @ image.R.T + image.t
+    x = x[x[:, 2] > 0]
+    uvw = x @ K.T
+    col = np.floor(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
+    row = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
+    ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    # Nearest point wins where several land on one pixel.
+    order = np.argsort(-x[ok, 2])
+    out[row[ok][order], col[ok][order]] = x[ok, 2][order]
+    return out
+
+
+def _prepare_views(ws: Workspace, model: SparseModel, names: list[str], max_image_size: int):
+    """Load the reference and sources, resized to the reference's inference size.
+
+    Returns images ``[N, 3, H, W]`` float32, intrinsics ``[N, 3, 3]`` and poses ``[N, 4, 4]``.
+    Each source is resized to the reference's ``(H, W)`` with its own exact scale, so
+    sources of slightly different size are fine. Intrinsics follow COLMAP's MVS
+    convention (:func:`colmap_pvs.io.maps.fusion_intrinsics`), as COLMAP's patch-match does.
+    """
+    ref_img = load_image(ws.images_dir / names[0])
+    ref_small, _, _ = resize_image(ref_img, max_image_size)
+    height, width = ref_small.shape[:2]
+    images, Ks, poses = [], [], []
+    for i, name in enumerate(names):
+        im = model.image_by_name(name)
+        cam = model.camera_of(im)
+        pix = ref_img if i == 0 else load_image(ws.images_dir / name)
+        if pix.shape[0] != cam.height or pix.shape[1] != cam.width:
+            raise WorkspaceError(
+                f"image {name!r} is {pix.shape[1]}x{pix.shape[0]} but its camera {cam.camera_id} says "
+                f"{cam.width}x{cam.height}"
+            )
+        if i == 0:
+            small = ref_small
+        else:
+            import cv2
+
+            small = cv2.resize(pix, (width, height), interpolation=cv2.INTER_AREA)
+        images.append(small.astype(np.float32).transpose(2, 0, 1) / 255.0)
+        # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
+        Ks.append(fusion_intrinsics(cam.K, (cam.width, cam.height), (width, height)))
+        poses.append(to_homogeneous(im.cam_from_world))
+    return np.stack(images), np.stack(Ks), np.stack(poses)
+
+
+def _is_done(ws: Workspace, name: str) -> bool:
+    return ws.depth_map_path(name, "geometric").exists() and ws.normal_map_path(name, "geometric").exists()
+
+
+def _write_outputs(ws: Workspace, name: str, depth: np.ndarray, normals: np.ndarray) -> None:
+    # Normals first, the geometric depth map last: it marks the image as done.
+    for kind in ("photometric", "geometric"):
+        write_normal_map(ws.normal_map_path(name, kind), normals)
+    write_depth_map(ws.depth_map_path(name, "photometric"), depth)
+    write_depth_map(ws.depth_map_path(name, "geometric"), depth)
+
+
+def _write_previews(ws: Workspace, name: str, depth, normals, confidence, visibility, sources, dr) -> None:
+    out = ws.stereo_dir / "previews"
+    save_depth_preview(out / f"{name}.depth.png", depth, vmin=dr[0], vmax=dr[1])
+    save_normal_preview(out / f"{name}.normal.png", normals)
+    save_scalar_preview(out / f"{name}.confidence.png", confidence)
+    for k, src in enumerate(sources):
+        save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", visibility[k])
+
+
+def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, device):
+    """Run the network on one reference.
+
+    Args:
+        images: ``[N, 3, H, W]`` float32 in ``[0, 1]``, reference at index 0.
+        intrinsics: ``[N, 3, 3]``; poses: ``[N, 4, 4]`` cam_from_world.
+        depth_range: ``(d_min, d_max)``; sparse_depth: ``[H, W]`` (0 = no point).
+
+    Returns:
+        depth ``[H, W]``, confidence ``[H, W]`` and visibility ``[N-1, H, W]`` (upsampled), numpy.
+    """
+    t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)[None]  # noqa: E731
+    with torch.inference_mode():
+        out = model(
+            t(images),
+            t(intrinsics),
+            t(poses),
+            t(depth_range[0]),
+            t(depth_range[1]),
+            sparse_depth=t(sparse_depth)[:, None],
+        )
+        h, w = images.shape[-2:]
+        vis = torch.nn.functional.interpolate(out.visibility.float(), size=(h, w), mode="bilinear",
+                                              align_corners=False)
+    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis[0].cpu().numpy()
+
+
+def run_stereo(config: StereoConfig) -> StereoResult:
+    """Compute depth and normal maps for every reference image of the workspace.
+
+    Resumable: images whose maps exist are skipped unless ``config.overwrite``.
+    Images without usable sources or sparse points are skipped with a warning.
+    """
+    ws, model_sparse = load_workspace(config.workspace_path)
+    device = resolve_device(config.device)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    net, ckpt_path, _meta = load_stereo_model(config, device)
+    selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
+    refs = choose_references(ws, model_sparse)
+    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ckpt_path),
+                model_config=net.config)
+    result = StereoResult(workspace=ws)
+    times: list[float] = []
+    bar = tqdm(refs.items(), desc="stereo", unit="image")
+    for name, spec in bar:
+        if not config.overwrite and _is_done(ws, name):
+            result.already_done.append(name)
+            continue
+        entry = selection.references.get(name)
+        if entry is None:
+            reason = next((sk.reason for sk in selection.skipped if sk.name == name), "not selectable")
+            logger.warning("skipping %s: %s", name, reason)
+            result.skipped[name] = reason
+            continue
+        if spec is None:
+            sources = resolve_sources(selection, name, "auto", num=config.num_views - 1)
+        else:
+            sources = resolve_sources(selection, name, spec.mode, names=spec.names, num=spec.num)
+            if spec.mode != "explicit":
+                sources = sources[: config.num_views - 1]
+        sources = list(sources)
+        if len(sources) < config.min_sources:
+            reason = f"only {len(sources)} source view(s) share points with it (need {config.min_sources})"
+            logger.warning("skipping %s: %s", name, reason)
+            result.skipped[name] = reason
+            continue
+        start = time.perf_counter()
+        images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
+        h, w = images.shape[-2:]
+        ref = model_sparse.image_by_name(name)
+        sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w)
+        try:
+            depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
+        except (RuntimeError, MemoryError) as exc:
+            if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
+                raise
+            reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
+            logger.error("skipping %s: %s (%s)", name, reason, exc)
+            result.skipped[name] = reason
+            continue
+        depth = np.where((conf >= config.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
+        normals = depth_to_normals(depth, Ks[0])
+        depth[~np.any(normals != 0, axis=-1)] = 0.0
+        _write_outputs(ws, name, depth, normals)
+        if config.previews:
+            _write_previews(ws, name, depth, normals, conf, vis, sources, entry.depth_range)
+        times.append(time.perf_counter() - start)
+        result.processed.append(name)
+        bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
+    done = [n for n in refs if _is_done(ws, n)]
+    write_fusion_cfg(ws.fusion_cfg, done)
+    result.seconds_per_image = float(np.mean(times)) if times else 0.0
+    logger.info(
+        "stereo: %d computed, %d already done, %d skipped, %.2f s/image",
+        len(result.processed), len(result.already_done), len(result.skipped), result.seconds_per_image,
+    )
+    return result

@@ -1,0 +1,623 @@
+"""Procedural synthetic scenes, deterministic from a seed.
+
+Three families (``SceneConfig.family``):
+
+- ``"object"``: DTU-like. A few objects (boxes, spheres, cylinders, cones, bumpy blobs) on
+  a table with thin legs, a floor and optional backdrop walls. Cameras live on a sphere
+  cap around the objects.
+- ``"room"``: indoor. Walls, floor and ceiling (often low-texture), furniture-like shapes
+  (tables and chairs with thin legs, shelves, cabinets, sofas, lamps on thin poles, balls),
+  posters. Cameras move inside the room.
+- ``"facade"``: a building facade with relief (recessed windows, ledges), protruding
+  boxes (balconies, pilasters), neighbouring facades, a street and street furniture
+  (poles, bins, trees) that occludes it. Cameras stand in the street.
+
+A :class:`Scene` is a single textured triangle mesh (plain numpy, see :mod:`.mesh`) plus
+what camera generation needs: a region of interest that cameras look at, the space the
+cameras may occupy and solid boxes they must stay out of, and occluder positions for the
+"disturbing" views. World axes: +z is up; units are metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ..errors import ConfigError
+from .mesh import Material, MeshBuilder, rotation_z
+from .textures import TEXTURE_SIZE, make_texture, random_texture_kind
+
+logger = logging.getLogger(__name__)
+
+FAMILIES = ("object", "room", "facade")
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How synthetic scenes are built (the seed is passed separately)."""
+
+    family: Literal["any", "object", "room", "facade"] = field(
+        default="any", metadata={"help": "scene family; 'any' draws one uniformly per scene"}
+    )
+    min_objects: int = field(default=3, metadata={"help": "minimum number of objects / furniture items"})
+    max_objects: int = field(default=6, metadata={"help": "maximum number of objects / furniture items"})
+    photo_texture_fraction: float = field(
+        default=0.35, metadata={"help": "probability that a surface gets a photographic texture"}
+    )
+    low_texture_fraction: float = field(
+        default=0.15,
+        metadata={"help": "probability that a surface gets a deliberately low-texture (near-uniform) material"},
+    )
+    texture_scale: tuple[float, ...] = field(
+        default=(0.15, 1.0),
+        metadata={
+            "help": "range (lo, hi) of the size of one texture tile, relative to the nominal viewing "
+            "distance (log-uniform)"
+        },
+    )
+    bumpiness: float = field(default=1.0, metadata={"help": "scale of height-field / blob relief amplitudes"})
+    segments: int = field(default=32, metadata={"help": "segments of spheres and cylinders"})
+    thin_structures: bool = field(default=True, metadata={"help": "add thin legs, poles and railings"})
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.min_objects <= self.max_objects:
+            raise ConfigError(
+                f"need 0 <= min_objects <= max_objects, got min_objects={self.min_objects}, "
+                f"max_objects={self.max_objects}"
+            )
+        for name in ("photo_texture_fraction", "low_texture_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.photo_texture_fraction + self.low_texture_fraction > 1.0:
+            raise ConfigError(
+                f"photo_texture_fraction + low_texture_fraction must be <= 1, got "
+                f"{self.photo_texture_fraction} + {self.low_texture_fraction}"
+            )
+        scale = tuple(float(v) for v in self.texture_scale)
+        object.__setattr__(self, "texture_scale", scale)
+        if len(scale) != 2 or not 0 < scale[0] <= scale[1]:
+            raise ConfigError(f"texture_scale must be two numbers 0 < lo <= hi, got {self.texture_scale!r}")
+        if self.bumpiness < 0:
+            raise ConfigError(f"bumpiness must be >= 0, got {self.bumpiness}")
+        if self.segments < 6:
+            raise ConfigError(f"segments must be >= 6, got {self.segments}")
+
+
+@dataclass(frozen=True)
+class Light:
+    """Scene lighting (view independent, so shading is multi-view consistent).
+
+    Attributes:
+        kind: ``"directional"`` (``vector`` = direction the light travels) or ``"point"``
+            (``vector`` = light position).
+        vector: ``[3]``.
+        intensity: diffuse intensity.
+        ambient: ambient term.
+        falloff: point lights only: distance at which the intensity halves (``1 / (1 + (d/f)^2)``).
+    """
+
+    kind: Literal["directional", "point"]
+    vector: tuple[float, float, float]
+    intensity: float
+    ambient: float
+    falloff: float = 0.0
+
+
+@dataclass(frozen=True)
+class ViewSpace:
+    """Where cameras may be, as spherical coordinates around the region of interest.
+
+    Eye = ``roi_center + dist * (cos(el) cos(az), cos(el) sin(az), sin(el))``.
+
+    Attributes:
+        az_center_deg, az_range_deg: azimuth in ``az_center +- az_range``.
+        el_range_deg: ``(lo, hi)`` elevation.
+        dist_range: ``(lo, hi)`` distance to the region of interest.
+        eye_box: ``[2, 3]`` bounds the eye must stay in.
+        margin: minimum clearance between the eye and any solid box.
+    """
+
+    az_center_deg: float
+    az_range_deg: float
+    el_range_deg: tuple[float, float]
+    dist_range: tuple[float, float]
+    eye_box: np.ndarray
+    margin: float
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A textured triangle mesh plus camera-placement hints.
+
+    Attributes:
+        family: ``"object"``, ``"room"`` or ``"facade"``.
+        seed: the seed it was built from.
+        vertices: ``[V, 3]`` float64.
+        triangles: ``[F, 3]`` int32.
+        uvs: ``[V, 2]`` float32 texture coordinates in tiles.
+        triangle_texture: ``[F]`` int32 index into ``textures``.
+        triangle_density: ``[F]`` float32 texture tiles per scene unit (for mip selection).
+        textures: ``[T, S, S, 3]`` float32 albedo in [0, 1].
+        texture_kinds: ``T`` kind names (see :data:`.textures.TEXTURE_KINDS`).
+        background: ``[3]`` colour of pixels that hit nothing.
+        light: the scene's :class:`Light`.
+        roi_center: ``[3]`` region of interest the cameras look at.
+        roi_radius: its radius.
+        view_space: where cameras may stand.
+        solids: ``[M, 2, 3]`` boxes (min, max) cameras must stay out of.
+        occluders: ``[K, 3]`` centres of objects that can hide the region of interest.
+    """
+
+    family: str
+    seed: int
+    vertices: np.ndarray
+    triangles: np.ndarray
+    uvs: np.ndarray
+    triangle_texture: np.ndarray
+    triangle_density: np.ndarray
+    textures: np.ndarray
+    texture_kinds: tuple[str, ...]
+    background: np.ndarray
+    light: Light
+    roi_center: np.ndarray
+    roi_radius: float
+    view_space: ViewSpace
+    solids: np.ndarray
+    occluders: np.ndarray
+
+    @property
+    def num_triangles(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def to_open3d(self):
+        """An ``open3d.t.geometry.TriangleMesh`` with ``vertex.positions``, ``vertex.texture_uvs``
+        and ``triangle.indices``, ``triangle.texture_ids`` and ``triangle.texture_density``."""
+        import open3d as o3d
+
+        mesh = o3d.t.geometry.TriangleMesh()
+        mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
+        mesh.vertex.texture_uvs = o3d.core.Tensor(self.uvs.astype(np.float32))
+        mesh.triangle.indices = o3d.core.Tensor(self.triangles.astype(np.int32))
+        mesh.triangle.texture_ids = o3d.core.Tensor(self.triangle_texture.astype(np.int32))
+        mesh.triangle.texture_density = o3d.core.Tensor(self.triangle_density.astype(np.float32))
+        return mesh
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+class _Builder:
+    """Mesh + texture bank + bookkeeping while a scene is built."""
+
+    def __init__(self, rng: np.random.Generator, config: SceneConfig, nominal_distance: float) -> None:
+        self.rng = rng
+        self.config = config
+        self.nominal_distance = nominal_distance
+        self.mesh = MeshBuilder()
+        self.textures: list[np.ndarray] = []
+        self.kinds: list[str] = []
+        self.solids: list[np.ndarray] = []
+        self.occluders: list[np.ndarray] = []
+
+    def texture(self, kind: str | None = None) -> int:
+        """Add a new texture (random kind unless given) and return its index."""
+        c = self.config
+        kind = kind or random_texture_kind(self.rng, c.photo_texture_fraction, c.low_texture_fraction)
+        self.textures.append(make_texture(self.rng, kind, TEXTURE_SIZE))
+        self.kinds.append(kind)
+        return len(self.textures) - 1
+
+    def material(self, kind: str | None = None, texture: int | None = None, scale: float = 1.0) -> Material:
+        """A material with a new (or the given) texture and a random tile size."""
+        lo, hi = self.config.texture_scale
+        tile = self.nominal_distance * scale * float(np.exp(self.rng.uniform(np.log(lo), np.log(hi))))
+        tex = self.texture(kind) if texture is None else texture
+        return Material(
+            texture=tex,
+            density=1.0 / tile,
+            angle=float(self.rng.uniform(0, 2 * np.pi)),
+            offset=(float(self.rng.random()), float(self.rng.random())),
+        )
+
+    def solid(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        self.solids.append(np.stack([np.asarray(lo, float), np.asarray(hi, float)]))
+
+    def last_aabb(self, n: int = 1) -> np.ndarray:
+        """Union of the bounds of the last ``n`` primitives."""
+        boxes = np.stack(self.mesh.aabbs[-n:])
+        return np.stack([boxes[:, 0].min(0), boxes[:, 1].max(0)])
+
+    def bumps(self, amplitude: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = int(self.rng.integers(3, 9))
+        dirs = self.rng.normal(size=(n, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        amps = self.rng.uniform(-1, 1, n) * amplitude * self.config.bumpiness
+        widths = self.rng.uniform(0.3, 0.8, n)
+        return dirs, amps, widths
+
+    def smooth_heights(self, nu: int, nv: int, amplitude: float, cells: int = 4) -> np.ndarray:
+        """``[nu, nv]`` smooth random relief with the given peak amplitude."""
+        import cv2
+
+        grid = self.rng.uniform(-1, 1, (cells + 1, cells + 1)).astype(np.float32)
+        h = cv2.resize(grid, (nv, nu), interpolation=cv2.INTER_CUBIC).astype(np.float64)
+        return h * amplitude * self.config.bumpiness
+
+    def finish(self, family: str, seed: int, light: Light, roi_center: np.ndarray, roi_radius: float,
+               view_space: ViewSpace) -> Scene:
+        arrays = self.mesh.arrays()
+        bg = np.clip(self.rng.uniform(0.05, 0.6) * np.ones(3) + self.rng.normal(0, 0.05, 3), 0, 1)
+        return Scene(
+            family=family,
+            seed=seed,
+            vertices=arrays["vertices"],
+            triangles=arrays["triangles"],
+            uvs=arrays["uvs"],
+            triangle_texture=arrays["triangle_texture"],
+            triangle_density=arrays["triangle_density"],
+            textures=np.stack(self.textures).astype(np.float32),
+            texture_kinds=tuple(self.kinds),
+            background=bg.astype(np.float32),
+            light=light,
+            roi_center=np.asarray(roi_center, np.float64),
+            roi_radius=float(roi_radius),
+            view_space=view_space,
+            solids=np.stack(self.solids) if self.solids else np.zeros((0, 2, 3)),
+            occluders=np.stack(self.occluders) if self.occluders else np.zeros((0, 3)),
+        )
+
+
+def _place_discs(rng: np.random.Generator, radii: np.ndarray, bounds: np.ndarray,
+                 tries: int = 200) -> list[tuple[int, np.ndarray]]:
+    """Non-overlapping disc centres inside ``bounds`` ``[2, 2]`` (xy min/max); discs that don't fit are dropped."""
+    placed: list[tuple[int, np.ndarray]] = []
+    for i, r in enumerate(radii):
+        lo, hi = bounds[0] + r, bounds[1] - r
+        if np.any(lo > hi):
+            continue
+        for _ in range(tries):
+            p = rng.uniform(lo, hi)
+            if all(np.linalg.norm(p - q) >= r + radii[j] + 0.01 for j, q in placed):
+                placed.append((i, p))
+                break
+    return placed
+
+
+def _directional_light(rng: np.random.Generator, az_deg: float | None = None) -> Light:
+    az = np.radians(rng.uniform(0, 360) if az_deg is None else az_deg)
+    el = np.radians(rng.uniform(30, 75))
+    to_light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return Light("directional", tuple(float(x) for x in -to_light), float(rng.uniform(0.55, 0.9)),
+                 float(rng.uniform(0.25, 0.45)))
+
+
+# --------------------------------------------------------------------------- families
+
+
+def _add_object(b: _Builder, kind: str, xy: np.ndarray, r: float, z0: float) -> float:
+    """One tabletop object with footprint radius ``r`` standing at height ``z0``; returns its height."""
+    rng, seg = b.rng, b.config.segments
+    m = b.material(scale=0.5)
+    if kind == "box":
+        h = rng.uniform(0.5, 2.5) * r
+        w, d = rng.uniform(0.9, 1.4, 2) * r
+        b.mesh.add_box([xy[0], xy[1], z0 + h / 2], [w, d, h], rng.uniform(0, np.pi), m)
+        if rng.random() < 0.3:  # a smaller box on top
+            s = rng.uniform(0.3, 0.6) * r
+            b.mesh.add_box([xy[0], xy[1], z0 + h + s / 2], [s, s, s], rng.uniform(0, np.pi), b.material(scale=0.5))
+            h += s
+    elif kind == "sphere":
+        h = 2 * r
+        b.mesh.add_sphere([xy[0], xy[1], z0 + r], r, m, seg)
+    elif kind == "blob":
+        h = 1.8 * r
+        b.mesh.add_sphere([xy[0], xy[1], z0 + 0.9 * r], r, m, seg, bumps=b.bumps(0.25))
+    elif kind == "cylinder":
+        h = rng.uniform(0.6, 3.0) * r
+        b.mesh.add_cylinder([xy[0], xy[1], z0], r, r, h, m, b.material(scale=0.5), seg)
+    else:  # cone / frustum
+        h = rng.uniform(1.0, 3.0) * r
+        b.mesh.add_cylinder([xy[0], xy[1], z0], r, r * rng.uniform(0.0, 0.7), h, m, None, seg)
+    return float(h)
+
+
+def _object_scene(b: _Builder, seed: int) -> Scene:
+    rng, cfg = b.rng, b.config
+    tw, td = rng.uniform(1.2, 2.0), rng.uniform(0.9, 1.4)
+    leg_h = rng.uniform(0.65, 0.8)
+    floor_z = -leg_h - 0.04
+    b.mesh.add_box([0, 0, -0.02], [tw, td, 0.04], 0.0, b.material(scale=1.5))
+    b.solid([-tw / 2, -td / 2, floor_z], [tw / 2, td / 2, 0.0])
+    if cfg.thin_structures:
+        leg_m = b.material(kind="low")
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                b.mesh.add_cylinder([sx * (tw / 2 - 0.06), sy * (td / 2 - 0.06), floor_z], 0.02, 0.02, leg_h,
+                                    leg_m, None, 12)
+    fs = 10.0
+    b.mesh.add_heightfield([-fs / 2, -fs / 2, floor_z], [fs, 0, 0], [0, fs, 0],
+                           b.smooth_heights(24, 24, 0.01), b.material(scale=3.0))
+    for _ in range(int(rng.integers(0, 3))):  # backdrop walls
+        az = rng.uniform(0, 2 * np.pi)
+        dist = rng.uniform(2.0, 3.5)
+        n = np.array([np.cos(az), np.sin(az), 0.0])
+        u = np.array([-n[1], n[0], 0.0]) * 8.0
+        o = n * dist - u / 2 + np.array([0, 0, floor_z])
+        b.mesh.add_heightfield(o, u, [0, 0, 3.0], b.smooth_heights(16, 8, 0.02), b.material(scale=3.0))
+
+    n_obj = int(rng.integers(cfg.min_objects, cfg.max_objects + 1))
+    radii = rng.uniform(0.04, 0.13, max(n_obj, 1))
+    spread = rng.uniform(0.2, 0.4)
+    placed = _place_discs(rng, radii[:n_obj], np.array([[-spread, -spread], [spread, spread]]))
+    kinds = ("box", "sphere", "cylinder", "cone", "blob")
+    tops, centres = [], []
+    for i, xy in placed:
+        h = _add_object(b, kinds[int(rng.integers(len(kinds)))], xy, float(radii[i]), 0.0)
+        b.solid(np.r_[xy - radii[i], 0.0], np.r_[xy + radii[i], h])
+        tops.append(h)
+        centres.append(np.r_[xy, h / 2])
+        if h > 0.1:
+            b.occluders.append(np.r_[xy, h * 0.6])
+    if centres:
+        c = np.mean(centres, axis=0)
+        reach = np.linalg.norm(np.array(centres)[:, :2] - c[:2], axis=1) + radii[[i for i, _ in placed]]
+        extent = float(reach.max())
+        c[2] = max(tops) * 0.35
+    else:
+        c, extent = np.zeros(3), 0.25
+    roi_r = float(np.clip(extent, 0.15, 0.5))
+    d0 = b.nominal_distance
+    vs = ViewSpace(
+        az_center_deg=0.0, az_range_deg=180.0, el_range_deg=(12.0, 70.0),
+        dist_range=(0.6 * d0, 1.4 * d0),
+        eye_box=np.array([[-6.0, -6.0, floor_z + 0.1], [6.0, 6.0, 3.0]]), margin=0.05,
+    )
+    return b.finish("object", seed, _directional_light(rng), c, roi_r, vs)
+
+
+def _room_scene(b: _Builder, seed: int) -> Scene:
+    rng, cfg = b.rng, b.config
+    W, L, H = rng.uniform(3.5, 6.5), rng.uniform(3.5, 6.5), rng.uniform(2.4, 3.2)
+    x0, y0 = -W / 2, -L / 2
+    wall_kind = "low" if rng.random() < 0.5 else None
+    wall_tex = b.texture(wall_kind)
+    walls = [
+        ([x0, y0, 0], [W, 0, 0], [0, 0, H]),
+        ([x0 + W, y0, 0], [0, L, 0], [0, 0, H]),
+        ([x0 + W, y0 + L, 0], [-W, 0, 0], [0, 0, H]),
+        ([x0, y0 + L, 0], [0, -L, 0], [0, 0, H]),
+    ]
+    for o, u, v in walls:
+        tex = wall_tex if rng.random() < 0.7 else None
+        nu = max(2, int(np.linalg.norm(u) * 4))
+        b.mesh.add_heightfield(o, u, v, b.smooth_heights(nu, 12, 0.005 * rng.random()), b.material(texture=tex,
+                                                                                              scale=2.0))
+        if rng.random() < 0.6:  # a poster / panel on the wall
+            un, vn = np.asarray(u, float) / np.linalg.norm(u), np.asarray(v, float) / np.linalg.norm(v)
+            n = np.cross(un, vn)
+            pw, ph = rng.uniform(0.5, 1.5), rng.uniform(0.4, 1.0)
+            po = np.asarray(o, float) + un * rng.uniform(0.2, np.linalg.norm(u) - pw - 0.2) + vn * rng.uniform(1.0, H - ph - 0.3)
+            b.mesh.add_quad(po + n * 0.01, un * pw, vn * ph, b.material(kind="photo", scale=0.5))
+    b.mesh.add_heightfield([x0, y0, 0], [W, 0, 0], [0, L, 0], np.zeros((2, 2)), b.material(scale=1.5))
+    b.mesh.add_heightfield([x0, y0, H], [0, L, 0], [W, 0, 0], np.zeros((2, 2)), b.material(kind="low", scale=2.0))
+
+    n_items = int(rng.integers(cfg.min_objects, cfg.max_objects + 1)) + 1
+    kinds = ("table", "chair", "shelf", "cabinet", "sofa", "lamp", "ball", "boxes")
+    radii = rng.uniform(0.3, 0.8, n_items)
+    placed = _place_discs(rng, radii, np.array([[x0 + 0.2, y0 + 0.2], [x0 + W - 0.2, y0 + L - 0.2]]))
+    centres = []
+    thin = cfg.thin_structures
+    for i, xy in placed:
+        kind = kinds[int(rng.integers(len(kinds)))]
+        r = float(radii[i])
+        yaw = rng.uniform(0, 2 * np.pi)
+        n_before = len(b.mesh.aabbs)
+        if kind in ("table", "chair"):
+            top_h = rng.uniform(0.7, 0.78) if kind == "table" else rng.uniform(0.42, 0.5)
+            sx, sy = (r * 1.4, r * rng.uniform(0.8, 1.3)) if kind == "table" else (0.45, 0.45)
+            b.mesh.add_box([xy[0], xy[1], top_h], [sx, sy, 0.04], yaw, b.material(scale=0.7))
+            leg_m = b.material(kind="low")
+            R = rotation_z(yaw)
+            for ox in (-1, 1):
+                for oy in (-1, 1):
+                    p = np.r_[xy, 0.0] + R @ np.array([ox * (sx / 2 - 0.04), oy * (sy / 2 - 0.04), 0.0])
+                    if thin:
+                        b.mesh.add_cylinder(p, 0.02, 0.02, top_h - 0.02, leg_m, None, 10)
+                    else:
+                        b.mesh.add_box(p + [0, 0, (top_h - 0.02) / 2], [0.06, 0.06, top_h - 0.02], yaw, leg_m)
+            if kind == "chair":
+                back = np.r_[xy, top_h + 0.25] + R @ np.array([0, -sy / 2 + 0.02, 0])
+                b.mesh.add_box(back, [sx, 0.04, 0.5], yaw, b.material(scale=0.7))
+                b.occluders.append(np.r_[xy, top_h])
+            else:
+                for _ in range(int(rng.integers(0, 3))):  # things on the table
+                    p = np.r_[xy, 0.0] + R @ np.r_[rng.uniform(-sx / 3, sx / 3), rng.uniform(-sy / 3, sy / 3), 0]
+                    _add_object(b, ("box", "sphere", "cylinder")[int(rng.integers(3))], p[:2],
+                                rng.uniform(0.05, 0.12), top_h + 0.02)
+        elif kind in ("shelf", "cabinet", "boxes"):
+            h = rng.uniform(0.6, 2.0) if kind != "boxes" else rng.uniform(0.3, 0.6)
+            b.mesh.add_box([xy[0], xy[1], h / 2], [r * 1.3, r * 0.8, h], yaw, b.material(scale=1.0))
+            if kind == "boxes":
+                s = rng.uniform(0.2, 0.4)
+                b.mesh.add_box([xy[0], xy[1], h + s / 2], [s, s, s], yaw + rng.uniform(-0.5, 0.5), b.material())
+            b.occluders.append(np.r_[xy, h * 0.6])
+        elif kind == "sofa":
+            m = b.material(scale=0.8)
+            R = rotation_z(yaw)
+            b.mesh.add_box([xy[0], xy[1], 0.22], [r * 1.8, 0.8, 0.44], yaw, m)
+            b.mesh.add_box(np.r_[xy, 0.6] + R @ [0, -0.32, 0], [r * 1.8, 0.16, 0.5], yaw, m)
+        elif kind == "lamp":
+            h = rng.uniform(1.3, 1.9)
+            pole_r = 0.015 if thin else 0.05
+            b.mesh.add_cylinder([xy[0], xy[1], 0], 0.18, 0.18, 0.03, b.material(kind="low"), None, 16)
+            b.mesh.add_cylinder([xy[0], xy[1], 0.03], pole_r, pole_r, h, b.material(kind="low"), None, 10)
+            b.mesh.add_cylinder([xy[0], xy[1], h - 0.1], 0.2, 0.1, 0.25, b.material(), None, 20)
+            b.occluders.append(np.r_[xy, h * 0.5])
+        else:  # ball / blob
+            rr = rng.uniform(0.1, 0.3)
+            b.mesh.add_sphere([xy[0], xy[1], rr], rr, b.material(scale=0.5), cfg.segments,
+                              bumps=b.bumps(0.15) if rng.random() < 0.5 else None)
+        lo, hi = b.last_aabb(len(b.mesh.aabbs) - n_before)
+        b.solid(lo, hi)
+        centres.append((lo + hi) / 2)
+    if centres:
+        c = np.array(centres[int(rng.integers(len(centres)))])
+        c[2] = np.clip(c[2], 0.4, 1.2)
+    else:
+        c = np.array([rng.uniform(x0 + 1, x0 + W - 1), y0 + L - 0.3, 1.2])
+    roi_r = float(rng.uniform(0.7, 1.3))
+    vs = ViewSpace(
+        az_center_deg=0.0, az_range_deg=180.0, el_range_deg=(-10.0, 45.0),
+        dist_range=(0.8 * b.nominal_distance, 1.6 * b.nominal_distance),
+        eye_box=np.array([[x0 + 0.25, y0 + 0.25, 0.4], [x0 + W - 0.25, y0 + L - 0.25, H - 0.3]]), margin=0.15,
+    )
+    light_pos = (float(rng.uniform(x0 + 0.5, x0 + W - 0.5)), float(rng.uniform(y0 + 0.5, y0 + L - 0.5)),
+                 float(H - 0.3))
+    light = Light("point", light_pos, float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.3, 0.5)),
+                  falloff=float(rng.uniform(2.5, 5.0)))
+    return b.finish("room", seed, light, c, roi_r, vs)
+
+
+def _facade_scene(b: _Builder, seed: int) -> Scene:
+    rng, cfg = b.rng, b.config
+    Wf, Hf = rng.uniform(8, 16), rng.uniform(6, 12)
+    res = 0.1
+    nu, nv = int(Wf / res) + 1, int(Hf / res) + 1
+    xs = np.linspace(-Wf / 2, Wf / 2, nu)[:, None]
+    zs = np.linspace(0, Hf, nv)[None, :]
+    relief = b.smooth_heights(nu, nv, 0.01, cells=12)  # displacement along -y (towards the street)
+    wall_m = b.material(scale=1.5)
+    glass_tex, frame_tex = b.texture(), b.texture()
+    cell_tex = np.full((nu - 1, nv - 1), wall_m.texture, np.int32)
+    floors = max(2, int(Hf / rng.uniform(2.8, 3.5)))
+    cols = max(2, int(Wf / rng.uniform(1.8, 3.0)))
+    fh, cw = Hf / floors, Wf / cols
+    ww, wh = cw * rng.uniform(0.35, 0.6), fh * rng.uniform(0.4, 0.6)
+    depth = rng.uniform(0.1, 0.35) * cfg.bumpiness
+    cx = (xs[:-1] + xs[1:]) / 2
+    cz = (zs[:, :-1] + zs[:, 1:]) / 2
+    for f in range(floors):
+        for k in range(cols):
+            if f == 0 and rng.random() < 0.3:
+                continue
+            wx0 = -Wf / 2 + k * cw + (cw - ww) / 2
+            wz0 = f * fh + (fh - wh) * 0.6
+            inside = (xs >= wx0) & (xs <= wx0 + ww) & (zs >= wz0) & (zs <= wz0 + wh)
+            relief[inside] = -depth
+            cin = (cx >= wx0) & (cx <= wx0 + ww) & (cz >= wz0) & (cz <= wz0 + wh)
+            cell_tex[cin] = glass_tex
+        if f > 0 and rng.random() < 0.6:  # a ledge band
+            band = (zs >= f * fh - 0.15) & (zs <= f * fh + 0.05)
+            relief[np.broadcast_to(band, relief.shape)] = 0.08 * cfg.bumpiness
+    # n = normalize(u x v) with u = +x, v = +z is -y: heights > 0 protrude towards the street (y < 0).
+    b.mesh.add_heightfield([-Wf / 2, 0, 0], [Wf, 0, 0], [0, 0, Hf], relief, wall_m, cell_tex)
+    b.solid([-Wf / 2, 0.0, 0.0], [Wf / 2, 5.0, Hf])
+    for side in (-1, 1):  # neighbouring facades
+        if rng.random() < 0.7:
+            w2, h2, dy = rng.uniform(5, 10), rng.uniform(5, 14), rng.uniform(-1.5, 3.0)
+            xstart = side * Wf / 2 if side > 0 else -Wf / 2 - w2
+            b.mesh.add_heightfield([xstart, dy, 0], [w2, 0, 0], [0, 0, h2], b.smooth_heights(int(w2 * 4), int(h2 * 4),
+                                   0.03), b.material(scale=1.5))
+            if abs(dy) > 0.05:  # the side wall that joins the two facades
+                xj = side * Wf / 2
+                b.mesh.add_quad([xj, min(0.0, dy), 0], [0, abs(dy), 0], [0, 0, min(h2, Hf)], b.material(scale=1.5))
+            b.solid([xstart, dy, 0.0], [xstart + w2, dy + 5.0, h2])
+    # protruding boxes: balconies and pilasters
+    for f in range(1, floors):
+        if rng.random() < 0.5:
+            k = int(rng.integers(cols))
+            bx = -Wf / 2 + (k + 0.5) * cw
+            bw, bd = cw * rng.uniform(0.6, 0.9), rng.uniform(0.5, 1.0)
+            b.mesh.add_box([bx, -bd / 2, f * fh], [bw, bd, 0.12], 0.0, b.material(scale=0.7))
+            if cfg.thin_structures:
+                rail_m = b.material(kind="low")
+                for x in np.linspace(bx - bw / 2 + 0.05, bx + bw / 2 - 0.05, int(bw / 0.3) + 1):
+                    b.mesh.add_cylinder([x, -bd + 0.05, f * fh + 0.06], 0.015, 0.015, 0.9, rail_m, None, 8)
+                b.mesh.add_box([bx, -bd + 0.05, f * fh + 0.98], [bw, 0.05, 0.05], 0.0, rail_m)
+            else:
+                b.mesh.add_box([bx, -bd + 0.05, f * fh + 0.5], [bw, 0.05, 0.9], 0.0, b.material())
+            b.solid([bx - bw / 2, -bd, f * fh - 0.1], [bx + bw / 2, 0.0, f * fh + 1.0])
+    for x in np.linspace(-Wf / 2, Wf / 2, cols + 1)[1:-1]:
+        if rng.random() < 0.3:
+            pw, pd = rng.uniform(0.2, 0.5), rng.uniform(0.1, 0.3)
+            b.mesh.add_box([x, -pd / 2 + 0.01, Hf / 2], [pw, pd, Hf], 0.0, b.material(scale=1.0), skip_bottom=True)
+    # street
+    b.mesh.add_heightfield([-30, -25, 0], [60, 0, 0], [0, 27, 0], b.smooth_heights(30, 20, 0.02),
+                           b.material(scale=3.0))
+    # street furniture (occluders)
+    n_items = int(rng.integers(cfg.min_objects, cfg.max_objects + 1))
+    for _ in range(n_items):
+        x, y = rng.uniform(-Wf / 2, Wf / 2), rng.uniform(-5.0, -1.2)
+        kind = ("pole", "bin", "tree", "car")[int(rng.integers(4))]
+        n_before = len(b.mesh.aabbs)
+        if kind == "pole":
+            h = rng.uniform(2.5, 5.0)
+            r = rng.uniform(0.04, 0.1) if cfg.thin_structures else 0.2
+            b.mesh.add_cylinder([x, y, 0], r, r * 0.8, h, b.material(scale=0.3), None, 12)
+            occ = np.array([x, y, h * 0.6])
+        elif kind == "bin":
+            h = rng.uniform(0.8, 1.2)
+            b.mesh.add_cylinder([x, y, 0], 0.3, 0.35, h, b.material(scale=0.3), None, 20)
+            occ = np.array([x, y, h / 2])
+        elif kind == "tree":
+            h = rng.uniform(2.0, 3.5)
+            rc = rng.uniform(0.8, 1.5)
+            b.mesh.add_cylinder([x, y, 0], 0.12, 0.1, h, b.material(scale=0.3), None, 12)
+            b.mesh.add_sphere([x, y, h + rc * 0.7], rc, b.material(scale=0.3), cfg.segments, bumps=b.bumps(0.3))
+            occ = np.array([x, y, h + rc * 0.5])
+        else:
+            yaw = rng.uniform(-0.2, 0.2)
+            b.mesh.add_box([x, y, 0.45], [rng.uniform(3.5, 4.5), 1.8, 0.7], yaw, b.material(scale=0.5))
+            b.mesh.add_box([x, y, 1.1], [2.0, 1.6, 0.6], yaw, b.material(kind="low"))
+            occ = np.array([x, y, 0.9])
+        lo, hi = b.last_aabb(len(b.mesh.aabbs) - n_before)
+        b.solid(lo, hi)
+        b.occluders.append(occ)
+    roi_r = float(rng.uniform(2.0, 3.5))
+    c = np.array([rng.uniform(-Wf / 3, Wf / 3), 0.0, rng.uniform(min(2.5, Hf / 2), min(Hf - 1.5, 6.0))])
+    vs = ViewSpace(
+        az_center_deg=-90.0, az_range_deg=60.0, el_range_deg=(-10.0, 35.0),
+        dist_range=(0.6 * b.nominal_distance, 1.5 * b.nominal_distance),
+        eye_box=np.array([[-30.0, -24.0, 1.0], [30.0, -0.6, 14.0]]), margin=0.2,
+    )
+    light = _directional_light(rng, az_deg=-90 + rng.uniform(-70, 70))
+    return b.finish("facade", seed, light, c, roi_r, vs)
+
+
+_NOMINAL_DISTANCE = {"object": 0.9, "room": 2.2, "facade": 8.0}
+
+
+def build_scene(config: SceneConfig, seed: int) -> Scene:
+    """Build a scene of ``config.family`` from ``seed`` (same inputs -> identical arrays)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5CE4E]))
+    family = config.family
+    if family == "any":
+        family = FAMILIES[int(rng.integers(len(FAMILIES)))]
+    nominal = _NOMINAL_DISTANCE[family] * float(rng.uniform(0.85, 1.2))
+    builder = _Builder(rng, config, nominal)
+    make = {"object": _object_scene, "room": _room_scene, "facade": _facade_scene}[family]
+    scene = make(builder, int(seed))
+    logger.debug("built %s scene (seed %d): %d triangles, %d textures", family, seed, scene.num_triangles,
+                 scene.textures.shape[0])
+    return scene
+
+
+def scene_from_primitives(builder_fn, *, seed: int = 0, roi_center=(0.0, 0.0, 0.0), roi_radius: float = 1.0,
+                          view_space: ViewSpace | None = None, light: Light | None = None,
+                          config: SceneConfig | None = None, nominal_distance: float = 1.0) -> Scene:
+    """A custom scene: ``builder_fn(mesh: MeshBuilder, material: Callable[..., Material])`` adds primitives.
+
+    ``material(kind=None, scale=1.0)`` returns a new random material; used by tests and examples
+    that need simple analytic geometry (a plane, a sphere).
+    """
+    config = config or SceneConfig()
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xC057]))
+    b = _Builder(rng, config, nominal_distance)
+    builder_fn(b.mesh, lambda kind=None, scale=1.0: b.material(kind=kind, scale=scale))
+    vs = view_space or ViewSpace(0.0, 180.0, (-80.0, 80.0), (1.0, 2.0),
+                                 np.array([[-1e3] * 3, [1e3] * 3]), 0.0)
+    light = light or Light("directional", (0.3, 0.4, -0.866), 0.7, 0.35)
+    return b.finish("custom", int(seed), light, np.asarray(roi_center, float), roi_radius, vs)

@@ -1,0 +1,42 @@
+"""Training PVSNet on the CPU: config, losses, MVSNet-format data and the resumable trainer.
+
+Entry point: :func:`train` (``Trainer(config).train()``), used by the CLI.
+"""
+
+from __future__ import annotations
+
+from .config import RESUMABLE_CHANGES, TrainConfig
+from .losses import DepthLoss, depth_loss, depth_metrics, downsample_depth, output_metrics, valid_mask
+from .mvsnet_dataset import MVSNetDataset, MVSNetDatasetConfig, MVSNetFormatError, read_pfm, write_pfm
+from .trainer import (
+    StepSampler,
+    Trainer,
+    TrainingDivergedError,
+    TrainingInterrupted,
+    build_datasets,
+    plot_curves,
+    train,
+)
+
+__all__ = [
+    "RESUMABLE_CHANGES",
+    "DepthLoss",
+    "MVSNetDataset",
+    "MVSNetDatasetConfig",
+    "MVSNetFormatError",
+    "StepSampler",
+    "TrainConfig",
+    "Trainer",
+    "TrainingDivergedError",
+    "TrainingInterrupted",
+    "build_datasets",
+    "depth_loss",
+    "depth_metrics",
+    "downsample_depth",
+    "output_metrics",
+    "plot_curves",
+    "read_pfm",
+    "train",
+    "valid_mask",
+    "write_pfm",
+]

@@ -1,0 +1,44 @@
+"""Shared pytest fixtures (keep them generic: other test modules rely on them)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+TESTS_DIR = Path(__file__).resolve().parent
+if str(TESTS_DIR) not in sys.path:  # make `import scenes` work in every import mode
+    sys.path.insert(0, str(TESTS_DIR))
+
+REPO_ROOT = TESTS_DIR.parent
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data_dir() -> Path:
+    """``../shared/data`` next to the repository (real captures; read-only). Skips if absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is missing")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def statue_workspace(shared_data_dir: Path) -> Path:
+    """The real COLMAP dense workspace ``colmap-statue`` (read-only). Skips if absent."""
+    path = shared_data_dir / "colmap-statue"
+    if not (path / "sparse").is_dir():
+        pytest.skip(f"real dense workspace {path} is missing")
+    return path
+
+
+@pytest.fixture(scope="session")
+def analytic_scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A complete analytic dense workspace (see ``tests/scenes.py``) built once per session.
+
+    Returns the GT dict of :func:`scenes.make_analytic_workspace`; ``gt["root"]`` is the
+    workspace. Treat it as read-only: copy it (``shutil.copytree``) before modifying anything.
+    """
+    from scenes import make_analytic_workspace
+
+    return make_analytic_workspace(tmp_path_factory.mktemp("analytic") / "workspace")

@@ -1,0 +1,96 @@
+"""Configs: strict keys, typed coercion, CLI flag generation and saved configs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import FrozenInstanceError, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from colmap_pvs.config import (
+    add_config_arguments,
+    config_from_args,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    replace_config,
+    save_config,
+)
+from colmap_pvs.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Inner:
+    width: int = 8
+
+
+@dataclass(frozen=True)
+class Demo:
+    path: Path
+    count: int = 3
+    ratio: float = 0.5
+    flag: bool = False
+    mode: Literal["a", "b"] = "a"
+    sizes: tuple[int, ...] = (1, 2)
+    maybe: float | None = None
+    inner: Inner = field(default_factory=Inner)
+
+
+def test_unknown_key_is_an_error_naming_it():
+    with pytest.raises(ConfigError, match="colour"):
+        config_from_dict(Demo, {"path": "x", "colour": 1})
+    with pytest.raises(ConfigError, match="depth"):
+        config_from_dict(Demo, {"path": "x", "inner": {"depth": 1}})
+
+
+@pytest.mark.parametrize(
+    "key,value",
+    [("count", "three"), ("count", 2.5), ("flag", "maybe"), ("mode", "c"), ("ratio", True), ("sizes", 3)],
+)
+def test_bad_values_are_rejected(key, value):
+    with pytest.raises(ConfigError, match=key):
+        config_from_dict(Demo, {"path": "x", key: value})
+
+
+def test_round_trip_and_frozen(tmp_path):
+    cfg = config_from_dict(Demo, {"path": "a/b", "count": "4", "flag": "true", "sizes": [3, 4], "maybe": 1})
+    assert cfg.path == Path("a/b") and cfg.count == 4 and cfg.flag is True and cfg.sizes == (3, 4)
+    assert cfg.maybe == 1.0
+    with pytest.raises(FrozenInstanceError):
+        cfg.count = 5  # type: ignore[misc]
+    assert config_from_dict(Demo, config_to_dict(cfg)) == cfg
+    save_config(cfg, tmp_path / "c.json", note="x")
+    assert json.loads((tmp_path / "c.json").read_text())["note"] == "x"
+    assert load_config(Demo, tmp_path / "c.json") == cfg
+    assert not [p for p in tmp_path.iterdir() if p.suffix == ".tmp"]
+    assert replace_config(cfg, count=9).count == 9
+    with pytest.raises(ConfigError):
+        replace_config(cfg, nope=1)
+
+
+def test_cli_flags_come_from_the_dataclass():
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, Demo, required=("path",))
+    args = parser.parse_args(["--path", "p", "--flag", "1", "--sizes", "5", "6", "--mode", "b"])
+    cfg = config_from_args(Demo, args)
+    assert cfg == Demo(path=Path("p"), flag=True, sizes=(5, 6), mode="b")
+    # Flags that are not given keep the dataclass default (no second copy of defaults).
+    assert config_from_args(Demo, parser.parse_args(["--path", "p"])) == Demo(path=Path("p"))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--path", "p", "--mode", "z"])
+    with pytest.raises(SystemExit):
+        parser.parse_args([])
+
+
+@dataclass(frozen=True)
+class Pair:
+    lim: tuple[float, int] = (1.0, 2)
+
+
+def test_fixed_length_tuples():
+    assert config_from_dict(Pair, {"lim": ["0.5", "3"]}).lim == (0.5, 3)
+    with pytest.raises(ConfigError, match="lim"):
+        config_from_dict(Pair, {"lim": [1.0]})

@@ -1,0 +1,201 @@
+"""COLMAP ``.bin`` map reader/writer: layout, bit-exact round trips, corruption, atomicity, previews."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import colmap_pvs.config
+from colmap_pvs.errors import ConfigError, MapFormatError, ShapeError
+from colmap_pvs.io import (
+    fusion_intrinsics,
+    read_array,
+    read_depth_map,
+    read_normal_map,
+    save_depth_preview,
+    save_normal_preview,
+    save_scalar_preview,
+    write_array,
+    write_depth_map,
+    write_normal_map,
+)
+
+
+def _colmap_mat_bytes(values: np.ndarray) -> bytes:
+    """Bytes as COLMAP's ``Mat<float>::Write`` produces them, element by element (mat.h indexing)."""
+    height, width, depth = values.shape
+    flat = np.zeros(width * height * depth, dtype="<f4")
+    for row in range(height):
+        for col in range(width):
+            for slice_ in range(depth):
+                flat[slice_ * width * height + row * width + col] = values[row, col, slice_]
+    return f"{width}&{height}&{depth}&".encode() + flat.tobytes()
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def test_layout_matches_colmap_mat(tmp_path: Path) -> None:
+    values = np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3) * 0.25 - 3.0
+    path = write_array(tmp_path / "a.bin", values)
+    assert path.read_bytes() == _colmap_mat_bytes(values)
+    (tmp_path / "b.bin").write_bytes(_colmap_mat_bytes(values))
+    np.testing.assert_array_equal(read_array(tmp_path / "b.bin"), values)
+
+
+def test_single_channel_is_2d_and_header_is_ascii(tmp_path: Path) -> None:
+    depth = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], dtype=np.float32)
+    write_array(tmp_path / "d.bin", depth)
+    data = (tmp_path / "d.bin").read_bytes()
+    assert data.startswith(b"3&2&1&")
+    assert np.frombuffer(data[6:], dtype="<f4").tolist() == [1, 2, 3, 4, 5, 6]
+    out = read_array(tmp_path / "d.bin")
+    assert out.shape == (2, 3) and out.dtype == np.float32
+
+
+@pytest.mark.parametrize("shape", [(7, 9), (6, 4, 3), (3, 5, 2)])
+def test_round_trip_is_bit_exact(tmp_path: Path, shape: tuple[int, ...]) -> None:
+    rng = np.random.default_rng(sum(shape))
+    bits = rng.integers(0, 2**32, size=shape, dtype=np.uint64).astype(np.uint32)
+    values = bits.view(np.float32)  # every bit pattern, NaN payloads and infinities included
+    values.flat[:3] = [-0.0, np.inf, np.float32(1e-45)]
+    write_array(tmp_path / "x.bin", values)
+    back = read_array(tmp_path / "x.bin")
+    assert back.shape == values.shape and back.dtype == np.float32
+    np.testing.assert_array_equal(back.view(np.uint32), values.view(np.uint32))
+
+
+def test_typed_maps_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 9.0, (12, 16)).astype(np.float32)
+    depth[3:5, 2:9] = 0.0
+    normals = rng.normal(size=(12, 16, 3))
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    normals[0, 0] = 0.0
+    write_depth_map(tmp_path / "d.bin", depth)
+    write_normal_map(tmp_path / "n.bin", normals)
+    np.testing.assert_array_equal(read_depth_map(tmp_path / "d.bin"), depth)
+    np.testing.assert_array_equal(read_normal_map(tmp_path / "n.bin"), normals.astype(np.float32))
+    with pytest.raises(MapFormatError, match="expected 1"):
+        read_depth_map(tmp_path / "n.bin")
+    with pytest.raises(MapFormatError, match="expected 3"):
+        read_normal_map(tmp_path / "d.bin")
+
+
+@pytest.mark.parametrize(
+    ("writer", "array", "error", "match"),
+    [
+        (write_depth_map, -np.ones((4, 4)), MapFormatError, "negative"),
+        (write_depth_map, np.full((4, 4), np.nan), MapFormatError, "non-finite"),
+        (write_depth_map, np.ones((4, 4, 1)), ShapeError, r"\[H, W\]"),
+        (write_normal_map, np.full((4, 4, 3), 0.5), MapFormatError, "neither unit nor zero"),
+        (write_normal_map, np.ones((4, 4)), ShapeError, r"\[H, W, 3\]"),
+        (write_array, np.ones((2, 2, 2, 2)), ShapeError, "shape"),
+        (write_array, np.array([["a"]]), ShapeError, "dtype"),
+    ],
+)
+def test_writers_reject_bad_input_without_output(tmp_path, writer, array, error, match) -> None:
+    with pytest.raises(error, match=match):
+        writer(tmp_path / "bad.bin", array)
+    assert list(tmp_path.iterdir()) == []
+
+
+def _corrupt_cases() -> dict[str, tuple[bytes, str]]:
+    good = b"4&3&1&" + np.ones(12, dtype="<f4").tobytes()
+    return {
+        "truncated": (good[:-5], "truncated.*48 payload bytes, found 43"),
+        "trailing": (good + b"\0\0\0\0", "trailing data.*48 payload bytes, found 52"),
+        "no_header": (b"\x00" * 80, "no 'W&H&C&' header"),
+        "bad_number": (b"4&x&1&" + good[6:], "malformed header"),
+        "zero_size": (b"0&3&1&", "non-positive"),
+        "empty": (b"", "no 'W&H&C&' header"),
+        "payload_only": (np.ones(12, dtype="<f4").tobytes(), "header"),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_corrupt_cases()))
+def test_corrupt_files_raise_map_format_error(tmp_path: Path, case: str) -> None:
+    data, match = _corrupt_cases()[case]
+    path = tmp_path / f"{case}.bin"
+    path.write_bytes(data)
+    with pytest.raises(MapFormatError, match=match) as info:
+        read_array(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(MapFormatError, match="does not exist") as info:
+        read_depth_map(tmp_path / "nope.bin")
+    assert "nope.bin" in str(info.value)
+
+
+def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "d.bin"
+    old = np.full((5, 6), 2.0, dtype=np.float32)
+    write_depth_map(path, old)
+    write_depth_map(path, old * 2)  # overwrite works
+    np.testing.assert_array_equal(read_depth_map(path), old * 2)
+    assert _leftovers(tmp_path) == []
+
+    def failing_replace(src, dst):
+        raise OSError("disk full (simulated)")
+
+    monkeypatch.setattr(colmap_pvs.config.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="simulated"):
+        write_depth_map(path, old * 3)
+    monkeypatch.undo()
+    np.testing.assert_array_equal(read_depth_map(path), old * 2)  # old file intact
+    assert _leftovers(tmp_path) == []  # temp file removed
+    with pytest.raises(MapFormatError):
+        write_depth_map(path, -old)
+    np.testing.assert_array_equal(read_depth_map(path), old * 2)
+
+
+def test_fusion_intrinsics() -> None:
+    K = np.array([[500.0, 0, 320.0], [0, 510.0, 240.0], [0, 0, 1]])
+    np.testing.assert_allclose(fusion_intrinsics(K, (640, 480)), K + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    half = fusion_intrinsics(K, (640, 480), (320, 240))
+    np.testing.assert_allclose(half, [[250.0, 0, 160.5], [0, 255.0, 120.5], [0, 0, 1]])
+
+
+def _read_png(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None, path
+    return image
+
+
+def test_previews(tmp_path: Path) -> None:
+    depth = np.tile(np.linspace(1.0, 5.0, 20), (10, 1))
+    depth[0, :5] = 0.0
+    depth[1, 0] = np.nan
+    preview = _read_png(save_depth_preview(tmp_path / "d.png", depth))
+    assert preview.shape == (10, 20, 3)
+    assert (preview[0, :5] == 0).all() and (preview[1, 0] == 0).all()
+    assert (preview[5].astype(int).sum(axis=1) > 0).all()
+    assert not np.array_equal(preview[5, 1], preview[5, -2])  # colour varies with depth
+
+    normals = np.zeros((4, 5, 3))
+    normals[1:, :, 2] = -1.0
+    n_png = _read_png(save_normal_preview(tmp_path / "n.png", normals))[:, :, ::-1]  # BGR -> RGB
+    assert (n_png[0] == 0).all() and (n_png[1:] == [128, 128, 0]).all()
+
+    values = np.array([[0.0, 0.5, 1.0, 2.0], [-1.0, np.nan, 0.25, 1.0]])
+    s_png = _read_png(save_scalar_preview(tmp_path / "s.png", values))
+    assert s_png.tolist() == [[0, 128, 255, 255], [0, 0, 64, 255]]
+    with pytest.raises(ConfigError, match="vmax"):
+        save_scalar_preview(tmp_path / "bad.png", values, vmin=1.0, vmax=1.0)
+    assert not (tmp_path / "bad.png").exists()
+    assert _leftovers(tmp_path) == []
+
+
+def test_read_error_names_unreadable_path(tmp_path: Path) -> None:
+    folder = tmp_path / "dir.bin"
+    folder.mkdir()
+    with pytest.raises(MapFormatError) as info:
+        read_array(folder)
+    assert os.fspath(folder) in str(info.value)

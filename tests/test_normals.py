@@ -1,0 +1,50 @@
+"""Normals from depth: unit length, camera-facing, exact on planes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from colmap_pvs.geometry import backproject_depth, pixel_centers
+from colmap_pvs.normals import depth_to_normals
+
+K = np.array([[90.0, 0, 41.0], [0, 95.0, 29.0], [0, 0, 1]])
+
+
+def plane_depth(n: np.ndarray, d: float, h: int = 60, w: int = 80) -> np.ndarray:
+    """z-depth of the plane n.x = d (camera frame) at every pixel centre."""
+    u, v = pixel_centers(h, w)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    return d / (rays @ n)
+
+
+def test_plane_normals_are_exact_and_face_the_camera():
+    n_true = np.array([0.3, -0.2, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    depth = plane_depth(n_true, -3.0)
+    assert (depth > 0).all()
+    normals = depth_to_normals(depth, K)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(normals.reshape(-1, 3), np.broadcast_to(n_true, (60 * 80, 3)), atol=1e-4)
+    pts = backproject_depth(depth, K)
+    assert (np.sum(normals * pts, -1) < 0).all()
+
+
+def test_flipped_input_orientation_is_still_camera_facing():
+    # The same plane written as -n . x = 3 has the same depth; normals must still face the camera.
+    n = np.array([0.0, 0.0, 1.0])
+    depth = plane_depth(n, 2.0)
+    normals = depth_to_normals(depth, K)
+    np.testing.assert_allclose(normals[..., 2], -1.0, atol=1e-6)
+
+
+def test_invalid_pixels_and_discontinuities_get_no_normal_bleed():
+    depth = np.full((40, 50), 2.0)
+    depth[:, 25:] = 5.0  # a jump: both sides are fronto-parallel
+    depth[10, 10] = 0.0
+    normals = depth_to_normals(depth, K[:, :] * [[1], [1], [1]])
+    assert np.all(normals[10, 10] == 0)
+    np.testing.assert_allclose(normals[20, 24], [0, 0, -1], atol=1e-6)
+    np.testing.assert_allclose(normals[20, 25], [0, 0, -1], atol=1e-6)
+    isolated = np.zeros((5, 5))
+    isolated[2, 2] = 1.0
+    assert np.all(depth_to_normals(isolated, K) == 0)

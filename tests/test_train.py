@@ -1,0 +1,223 @@
+"""Trainer: identical resumption, loss decrease, run files, signals, sampler, schedules.
+
+Uses a tiny PVSNet and an in-test dataset of textured planes rendered exactly (ray-plane
+intersection, analytic texture), so it does not depend on the synthetic renderer.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import signal
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import Dataset
+
+from colmap_pvs.config import load_config, replace_config
+from colmap_pvs.errors import ConfigError
+from colmap_pvs.model import PVSNetConfig, load_checkpoint
+from colmap_pvs.train import StepSampler, TrainConfig, Trainer, TrainingInterrupted
+
+H, W, N = 48, 64, 3
+
+TINY = PVSNetConfig(
+    feature_channels=(8, 8, 8),
+    planes_per_stage=(8, 8, 4),
+    groups_per_stage=(4, 4, 4),
+    visibility_channels=4,
+    regularization_channels=4,
+    stage_channels=(4, 4),
+    confidence_planes=2,
+)
+
+
+def _rot_y(a: float) -> np.ndarray:
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+class PlaneDataset(Dataset):
+    """Textured planes ``z = z0 + p x + q y`` (reference camera frame = world), exact renders."""
+
+    def __init__(self, length: int = 3, seed: int = 0, trigger: tuple[int, int] | None = None) -> None:
+        self.length, self.seed = length, seed
+        self.trigger = trigger  # (fetch number, signal) sent to this process at that fetch
+        self.fetches = 0
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        self.fetches += 1
+        if self.trigger is not None and self.fetches == self.trigger[0]:
+            os.kill(os.getpid(), self.trigger[1])
+        rng = np.random.default_rng([self.seed, index])
+        z0, p, q = rng.uniform(2.0, 3.0), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)
+        freq = rng.uniform(3.0, 9.0, size=(3, 2))
+        K = np.array([[55.0, 0, W / 2], [0, 55.0, H / 2], [0, 0, 1]])
+        n = np.array([-p, -q, 1.0])  # plane: n . X = z0
+        v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
+        pix = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+        images, poses, depth = [], [], None
+        for i in range(N):
+            T = np.eye(4)
+            if i:
+                T[:3, :3] = _rot_y(rng.uniform(-0.05, 0.05))
+                T[:3, 3] = [rng.choice([-1, 1]) * rng.uniform(0.15, 0.3), rng.uniform(-0.05, 0.05), 0.0]
+            R, t = T[:3, :3], T[:3, 3]
+            C, d = -R.T @ t, pix @ R  # rays in world: R^T K^-1 x
+            s = (z0 - n @ C) / (d @ n)
+            X = C + s[..., None] * d
+            img = 0.5 + 0.22 * np.sin(X[..., :1] * freq[:, 0] * 3) * np.cos(X[..., 1:2] * freq[:, 1] * 3)
+            img += 0.2 * np.sin(7 * X[..., :1] + 5 * X[..., 1:2])
+            images.append(np.clip(img, 0, 1).transpose(2, 0, 1))
+            poses.append(T)
+            if i == 0:
+                depth = X[..., 2]
+        sparse = np.zeros((1, H, W))
+        sparse[0, ::9, ::11] = depth[::9, ::11]
+        return {
+            "images": torch.tensor(np.stack(images), dtype=torch.float32),
+            "intrinsics": torch.tensor(np.stack([K] * N), dtype=torch.float32),
+            "cam_from_world": torch.tensor(np.stack(poses), dtype=torch.float32),
+            "depth": torch.tensor(depth, dtype=torch.float32),
+            "depth_min": torch.tensor(1.5, dtype=torch.float32),
+            "depth_max": torch.tensor(4.5, dtype=torch.float32),
+            "sparse_depth": torch.tensor(sparse, dtype=torch.float32),
+        }
+
+
+def _config(tmp: Path, **kw) -> TrainConfig:
+    base = dict(
+        output_dir=tmp,
+        model=TINY,
+        steps=4,
+        batch_size=2,
+        log_every=1,
+        val_every=2,
+        val_samples=2,
+        checkpoint_every_seconds=0.0,
+        progress=False,
+        torch_threads=2,
+        seed=7,
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return [
+            {k: v for k, v in r.items() if k not in ("time_s", "sec_per_step")} for r in csv.DictReader(f)
+        ]
+
+
+def _raw(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def test_resume_continues_the_identical_run(tmp_path: Path) -> None:
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    a = Trainer(_config(straight), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    a.train()
+    b = Trainer(_config(split), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    b.train(max_steps=2)
+    assert _raw(split / "last.pt")["step"] == 2 and not (split / "model.pt").exists()
+    b2 = Trainer(_config(split), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    assert b2.step == 2 and b2.resumed_from == split / "last.pt"
+    b2.train()
+
+    ca, cb = _raw(straight / "last.pt"), _raw(split / "last.pt")
+    assert ca["step"] == cb["step"] == 4
+    assert ca["state_dict"].keys() == cb["state_dict"].keys()
+    for k, v in ca["state_dict"].items():
+        assert torch.equal(v, cb["state_dict"][k]), k
+    for k, st in ca["optimizer"]["state"].items():
+        assert torch.equal(st["square_avg"], cb["optimizer"]["state"][k]["square_avg"])
+    assert torch.equal(ca["rng"]["torch"], cb["rng"]["torch"])
+    assert ca["rng"]["numpy"] == cb["rng"]["numpy"] and ca["rng"]["python"] == cb["rng"]["python"]
+    assert ca["scheduler"]["last_epoch"] == cb["scheduler"]["last_epoch"] == 4
+    rows_a, rows_b = _rows(straight / "log.csv"), _rows(split / "log.csv")
+    assert [r["step"] for r in rows_a] == ["1", "2", "3", "4"] and rows_a == rows_b
+    assert _rows(straight / "val.csv") == _rows(split / "val.csv")
+    assert ca["best_val_loss"] == cb["best_val_loss"] < math.inf
+
+    # the run actually trained: the weights moved away from the initial ones
+    init = Trainer(
+        _config(tmp_path / "init"), train_dataset=PlaneDataset(), val_dataset=None
+    ).model.state_dict()
+    assert any(not torch.equal(init[k], v) for k, v in ca["state_dict"].items())
+
+    # run files
+    header = (straight / "log.csv").read_text().splitlines()[0].split(",")
+    assert header == ["step", "time_s", "loss"] + [f"loss_out{k}" for k in range(5)] + ["lr", "sec_per_step"]
+    assert load_config(TrainConfig, straight / "config.json") == _config(straight)
+    png = cv2.imread(str(straight / "loss.png"))
+    assert png is not None and png.shape[2] == 3 and png.std() > 0
+    for name in ("last.pt", "best.pt", "model.pt"):
+        raw = _raw(straight / name)  # weights_only=True loads everything we store
+        assert raw["train_config"]["model"]["feature_channels"] == [8, 8, 8]
+        model, meta = load_checkpoint(straight / name)
+        assert meta["step"] in (2, 4)
+    assert "optimizer" not in _raw(straight / "model.pt")
+    assert (straight / "model.pt").stat().st_size < (straight / "last.pt").stat().st_size
+
+    # finished run: resuming is a no-op; a changed training field is refused
+    assert Trainer(_config(straight), train_dataset=PlaneDataset(), val_dataset=None).step == 4
+    with pytest.raises(ConfigError, match="lr"):
+        Trainer(_config(straight, lr=5e-4), train_dataset=PlaneDataset(), val_dataset=None)
+    longer = Trainer(_config(straight, steps=5, val_every=0), train_dataset=PlaneDataset())
+    assert longer.step == 4  # steps may grow on resume
+
+
+def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(tmp_path: Path) -> None:
+    trainer = Trainer(
+        _config(tmp_path, val_every=0, batch_size=1, lr_schedule="constant"), train_dataset=PlaneDataset(1)
+    )
+    batch = {k: v[None] for k, v in PlaneDataset(1)[0].items()}
+    losses = [trainer.train_step(batch)[0] for _ in range(10)]
+    assert trainer.step == 10
+    assert np.mean(losses[-3:]) < 0.7 * losses[0], losses
+
+
+def test_sigterm_checkpoints_and_the_run_resumes(tmp_path: Path) -> None:
+    cfg = _config(tmp_path, val_every=0, batch_size=1, steps=3)
+    # the 2nd sample fetch (step 2) raises SIGTERM: step 2 completes, then the loop stops
+    trainer = Trainer(cfg, train_dataset=PlaneDataset(trigger=(2, signal.SIGTERM)))
+    with pytest.raises(TrainingInterrupted) as info:
+        trainer.train()
+    assert info.value.signal_name == "SIGTERM" and info.value.step == 2
+    assert _raw(tmp_path / "last.pt")["step"] == 2
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored
+    Trainer(cfg, train_dataset=PlaneDataset()).train()
+    assert _raw(tmp_path / "last.pt")["step"] == 3 and (tmp_path / "model.pt").is_file()
+
+
+def test_step_sampler_is_a_pure_function_of_seed_and_position() -> None:
+    full = StepSampler(5, seed=3)
+    it = iter(full)
+    stream = [next(it) for _ in range(17)]
+    assert sorted(stream[:5]) == list(range(5)) and sorted(stream[5:10]) == list(range(5))
+    assert stream[:5] != stream[5:10] or stream[5:10] != stream[10:15]  # epochs are reshuffled
+    for start in (0, 4, 5, 11):
+        it = iter(StepSampler(5, seed=3, start=start))
+        assert [next(it) for _ in range(17 - start)] == stream[start:]
+    other = iter(StepSampler(5, seed=4))
+    assert [next(other) for _ in range(17)] != stream
+
+
+def test_lr_schedules(tmp_path: Path) -> None:
+    cfg = _config(tmp_path, lr_schedule="step", lr_decay_every=10, lr_decay_gamma=0.5)
+    assert [cfg.lr_factor(s) for s in (0, 9, 10, 25)] == [1.0, 1.0, 0.5, 0.25]
+    cos = replace_config(cfg, lr_schedule="cosine", steps=100, lr_min_factor=0.1)
+    assert cos.lr_factor(0) == 1.0 and cos.lr_factor(50) == pytest.approx(0.55) and cos.lr_factor(200) == 0.1
+    warm = replace_config(cfg, lr_schedule="constant", lr_warmup_steps=4)
+    assert [warm.lr_factor(s) for s in range(5)] == [0.25, 0.5, 0.75, 1.0, 1.0]
+    with pytest.raises(ConfigError, match="batch_size"):
+        replace_config(cfg, batch_size=0)
+    with pytest.raises(ConfigError, match="mvsnet.root"):
+        replace_config(cfg, dataset="mvsnet")
