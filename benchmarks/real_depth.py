@@ -84,8 +84,11 @@ def git_commit() -> str:
 
 def build_model(data: Path, work: Path, threads: int) -> Path:
     """The cached COLMAP model of the sequence built from its known poses."""
+    import pycolmap
+
     from colmap_pvs.io.import_poses import ImportPosesConfig, import_poses
 
+    pycolmap.logging.minloglevel = 2  # COLMAP's INFO lines would bury the table (errors still show)
     start = time.perf_counter()
     model_dir = import_poses(
         ImportPosesConfig(
@@ -260,6 +263,7 @@ def stereo_worker(spec: dict) -> dict:
 
 def run_worker(kind: str, spec: dict, log: Path) -> dict:
     """Run ``stereo_worker``/``baseline_worker`` in a subprocess; adds its peak RSS and wall time."""
+    log.parent.mkdir(parents=True, exist_ok=True)
     spec_path = log.with_suffix(".spec.json")
     out_path = log.with_suffix(".result.json")
     spec_path.write_text(json.dumps(spec))
@@ -362,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--note", default="", help="a note stored with the results")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    # The baseline has no stereo record (checkpoint unknown) and missing outputs show in the table.
+    logging.getLogger("colmap_pvs.evaluate").setLevel(logging.ERROR)
 
     from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth, file_sha256
     from colmap_pvs.io.sparse import read_sparse_model

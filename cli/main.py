@@ -32,6 +32,7 @@ class Command:
     report: str | None = None
     planned: str | None = None  # set while the command is not built yet
     required: tuple[str, ...] = ()
+    positional: tuple[str, ...] = ()  # config fields also accepted as optional positionals
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -58,12 +59,46 @@ COMMANDS: tuple[Command, ...] = (
         "colmap_pvs.cli.reports:report_stereo",
         required=("workspace_path",),
     ),
-    Command("fuse", "fuse depth maps into a point cloud (ours or COLMAP's)", planned="issue #5"),
-    Command("mesh", "screened Poisson mesh from a fused cloud", planned="issue #5"),
-    Command("reconstruct", "images -> SfM -> stereo -> fusion -> mesh, in one command", planned="issue #5"),
-    Command("import-poses", "known poses + intrinsics -> COLMAP model with triangulated points",
-            planned="issue #5"),
-    Command("demo", "run the whole pipeline on a built-in synthetic scene", planned="issue #5"),
+    Command(
+        "fuse",
+        "fuse depth maps into a point cloud + .vis (ours: geometric consistency; or COLMAP's)",
+        "colmap_pvs.fusion:FuseConfig",
+        "colmap_pvs.fusion:fuse",
+        "colmap_pvs.cli.reports_pipeline:report_fuse",
+        required=("workspace_path",),
+    ),
+    Command(
+        "mesh",
+        "screened Poisson mesh from a fused cloud, trimmed by density (open3d or COLMAP)",
+        "colmap_pvs.mesh:MeshConfig",
+        "colmap_pvs.mesh:mesh",
+        "colmap_pvs.cli.reports_pipeline:report_mesh",
+        required=("input_path",),
+    ),
+    Command(
+        "reconstruct",
+        "images -> SfM -> undistort -> stereo -> fusion -> mesh, in one resumable command (CPU)",
+        "colmap_pvs.reconstruct:ReconstructConfig",
+        "colmap_pvs.reconstruct:reconstruct",
+        "colmap_pvs.cli.reports_pipeline:report_reconstruct",
+        required=("image_path", "workspace_path"),
+    ),
+    Command(
+        "import-poses",
+        "known poses + intrinsics -> COLMAP model with points triangulated (poses held fixed)",
+        "colmap_pvs.io.import_poses:ImportPosesConfig",
+        "colmap_pvs.io.import_poses:import_poses",
+        "colmap_pvs.cli.reports_pipeline:report_import_poses",
+        required=("image_path", "poses_path", "output_path"),
+    ),
+    Command(
+        "demo",
+        "run the whole pipeline on a built-in synthetic scene: colmap-pvs demo [OUT]",
+        "colmap_pvs.demo:DemoConfig",
+        "colmap_pvs.demo:run_demo",
+        "colmap_pvs.cli.reports_pipeline:report_demo",
+        positional=("output_path",),
+    ),
     Command("train", "train PVSNet on synthetic scenes (anti-noise strategy)", planned="issue #6"),
     Command(
         "evaluate depth",
@@ -112,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
             p = sub.add_parser(cmd.name, help=help_text, description=help_text)
         if cmd.config is not None:
             add_config_arguments(p, _load(cmd.config), required=cmd.required)
+        for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
+            p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
+                           help=f"same as --{name}")
     return parser
 
 

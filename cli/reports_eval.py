@@ -14,9 +14,7 @@ def format_table(header: list[str], rows: list[list[str]], align_left: int = 1) 
     widths = [max(len(r[c]) for r in [header, *rows]) for c in range(len(header))]
 
     def line(r: list[str]) -> str:
-        cells = [
-            f"{v:<{widths[c]}}" if c < align_left else f"{v:>{widths[c]}}" for c, v in enumerate(r)
-        ]
+        cells = [f"{v:<{widths[c]}}" if c < align_left else f"{v:>{widths[c]}}" for c, v in enumerate(r)]
         return "  ".join(cells).rstrip()
 
     head = line(header)
@@ -73,9 +71,13 @@ def report_depth(metrics, per_image: bool = True) -> str:
             + ", ".join(metrics.missing_gt[:10])
             + (" ..." if len(metrics.missing_gt) > 10 else "")
         )
-    ckpt = metrics.checkpoint_used or "unknown"
-    sha = (metrics.checkpoint_sha256 or "-")[:16]
-    lines.append(f"checkpoint: {ckpt} (sha256 {sha}...)   metrics: {metrics.output_path}")
+    if metrics.checkpoint_used is None:
+        ckpt = "unknown (no stereo/colmap_pvs_stereo.json)"
+    elif metrics.checkpoint_sha256 is None:
+        ckpt = f"{metrics.checkpoint_used} (file gone: no sha256)"
+    else:
+        ckpt = f"{metrics.checkpoint_used} (sha256 {metrics.checkpoint_sha256[:16]}...)"
+    lines.append(f"checkpoint: {ckpt}   metrics: {metrics.output_path}")
     return "\n".join(lines)
 
 

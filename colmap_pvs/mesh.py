@@ -48,24 +48,31 @@ class MeshConfig:
         default="open3d", metadata={"help": "open3d screened Poisson + density trimming, or COLMAP's mesher"}
     )
     depth: int = field(
-        default=9, metadata={"help": "Poisson octree depth: the finest grid is at most 2^depth cells per side"}
+        default=9,
+        metadata={"help": "Poisson octree depth: the finest grid is at most 2^depth cells per side"},
     )
     density_quantile: float = field(
         default=0.05,
-        metadata={"help": "open3d: remove vertices whose Poisson density is below this quantile (0 keeps all)"},
+        metadata={
+            "help": "open3d: remove vertices whose Poisson density is below this quantile (0 keeps all)"
+        },
     )
     bbox_margin: float = field(
         default=0.05,
-        metadata={"help": "open3d: crop to the cloud's bounding box enlarged by this fraction of its size "
-                          "(negative disables)"},
+        metadata={
+            "help": "open3d: crop to the cloud's bounding box enlarged by this fraction of its size "
+            "(negative disables)"
+        },
     )
     point_weight: float = field(
         default=2.0, metadata={"help": "screening weight of the points (interpolation vs smoothness)"}
     )
     colmap_trim: float | None = field(
         default=None,
-        metadata={"help": "colmap: PoissonRecon trim value (vertices with a lower density value are removed); "
-                          "default depth - 3, COLMAP's own 13/10 ratio (a trim >= depth removes everything)"},
+        metadata={
+            "help": "colmap: PoissonRecon trim value (vertices with a lower density value are removed); "
+            "default depth - 3, COLMAP's own 13/10 ratio (a trim >= depth removes everything)"
+        },
     )
     normal_neighbors: int = field(
         default=30, metadata={"help": "open3d: neighbours for estimating normals when the cloud has none"}
@@ -96,7 +103,8 @@ def poisson_mesh(
         colors: ``[N, 3]`` uint8 or ``None``.
 
     Returns:
-        ``(vertices [V, 3] float64, faces [F, 3] int64, vertex_normals [V, 3], vertex_colors [V, 3] uint8 | None)``.
+        ``(vertices [V, 3] float64, faces [F, 3] int64, vertex_normals [V, 3],
+        vertex_colors [V, 3] uint8 or None)``.
     """
     import open3d as o3d
 
@@ -109,8 +117,9 @@ def poisson_mesh(
         est.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(config.normal_neighbors))
         if have.any():
             # Orient estimated normals like the nearest point with a known normal.
-            tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(
-                o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)[have])))
+            tree = o3d.geometry.KDTreeFlann(
+                o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)[have]))
+            )
             known = normals[have]
             est_n = np.asarray(est.normals)
             for i in np.nonzero(~have)[0]:
@@ -161,7 +170,9 @@ def mesh(config: MeshConfig) -> Path:
     start = time.perf_counter()
     cloud = read_point_cloud(src)
     if len(cloud) < 4:
-        raise MapFormatError(f"point cloud {str(src)!r} has {len(cloud)} points; at least 4 are needed to mesh")
+        raise MapFormatError(
+            f"point cloud {str(src)!r} has {len(cloud)} points; at least 4 are needed to mesh"
+        )
     if config.method == "colmap":
         import pycolmap
 
@@ -171,7 +182,9 @@ def mesh(config: MeshConfig) -> Path:
         try:
             options = pycolmap.PoissonMeshingOptions()
             options.depth = config.depth
-            options.trim = config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            options.trim = (
+                config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            )
             options.point_weight = config.point_weight
             options.num_threads = config.num_threads
             pycolmap.poisson_meshing(str(src), tmp, options=options)

@@ -81,6 +81,7 @@ class StereoResult:
     processed: list[str] = field(default_factory=list)
     already_done: list[str] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
+    sources: dict[str, list[str]] = field(default_factory=dict)
     seconds_per_image: float = 0.0
 
 
@@ -270,6 +271,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
             logger.warning("skipping %s: %s", name, reason)
             result.skipped[name] = reason
             continue
+        result.sources[name] = sources
         start = time.perf_counter()
         images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
         h, w = images.shape[-2:]

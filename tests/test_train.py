@@ -33,6 +33,7 @@ TINY = PVSNetConfig(
     regularization_channels=4,
     stage_channels=(4, 4),
     confidence_planes=2,
+    channels_last=False,  # oneDNN's channels-last 3D kernels cost seconds of warm-up per shape
 )
 
 
@@ -41,7 +42,11 @@ def _rot_y(a: float) -> np.ndarray:
 
 
 class PlaneDataset(Dataset):
-    """Textured planes ``z = z0 + p x + q y`` (reference camera frame = world), exact renders."""
+    """Textured planes ``z = z0 + p x + q y`` (reference camera frame = world), exact renders.
+
+    Adds noise from the global torch RNG, so that resuming is only identical when the RNG
+    state is restored too.
+    """
 
     def __init__(self, length: int = 3, seed: int = 0, trigger: tuple[int, int] | None = None) -> None:
         self.length, self.seed = length, seed
@@ -78,10 +83,11 @@ class PlaneDataset(Dataset):
             poses.append(T)
             if i == 0:
                 depth = X[..., 2]
+        noise = 0.01 * torch.randn(N, 3, H, W)  # global-RNG "augmentation": resuming must restore the RNG
         sparse = np.zeros((1, H, W))
         sparse[0, ::9, ::11] = depth[::9, ::11]
         return {
-            "images": torch.tensor(np.stack(images), dtype=torch.float32),
+            "images": torch.tensor(np.stack(images), dtype=torch.float32) + noise,
             "intrinsics": torch.tensor(np.stack([K] * N), dtype=torch.float32),
             "cam_from_world": torch.tensor(np.stack(poses), dtype=torch.float32),
             "depth": torch.tensor(depth, dtype=torch.float32),
@@ -122,12 +128,15 @@ def _raw(path: Path) -> dict:
 
 def test_resume_continues_the_identical_run(tmp_path: Path) -> None:
     straight, split = tmp_path / "straight", tmp_path / "split"
-    a = Trainer(_config(straight), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    # log rows at steps 3 (mean of steps 1-3: the accumulators must survive the resume) and 4
+    # 4 steps of batch 1 over 3 samples also cross an epoch boundary of the sample order
+    cfg_a, cfg_b = _config(straight, log_every=3, batch_size=1), _config(split, log_every=3, batch_size=1)
+    a = Trainer(cfg_a, train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
     a.train()
-    b = Trainer(_config(split), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    b = Trainer(cfg_b, train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
     b.train(max_steps=2)
     assert _raw(split / "last.pt")["step"] == 2 and not (split / "model.pt").exists()
-    b2 = Trainer(_config(split), train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
+    b2 = Trainer(cfg_b, train_dataset=PlaneDataset(), val_dataset=PlaneDataset(seed=99))
     assert b2.step == 2 and b2.resumed_from == split / "last.pt"
     b2.train()
 
@@ -142,7 +151,7 @@ def test_resume_continues_the_identical_run(tmp_path: Path) -> None:
     assert ca["rng"]["numpy"] == cb["rng"]["numpy"] and ca["rng"]["python"] == cb["rng"]["python"]
     assert ca["scheduler"]["last_epoch"] == cb["scheduler"]["last_epoch"] == 4
     rows_a, rows_b = _rows(straight / "log.csv"), _rows(split / "log.csv")
-    assert [r["step"] for r in rows_a] == ["1", "2", "3", "4"] and rows_a == rows_b
+    assert [r["step"] for r in rows_a] == ["3", "4"] and rows_a == rows_b
     assert _rows(straight / "val.csv") == _rows(split / "val.csv")
     assert ca["best_val_loss"] == cb["best_val_loss"] < math.inf
 
@@ -155,7 +164,7 @@ def test_resume_continues_the_identical_run(tmp_path: Path) -> None:
     # run files
     header = (straight / "log.csv").read_text().splitlines()[0].split(",")
     assert header == ["step", "time_s", "loss"] + [f"loss_out{k}" for k in range(5)] + ["lr", "sec_per_step"]
-    assert load_config(TrainConfig, straight / "config.json") == _config(straight)
+    assert load_config(TrainConfig, straight / "config.json") == cfg_a
     png = cv2.imread(str(straight / "loss.png"))
     assert png is not None and png.shape[2] == 3 and png.std() > 0
     for name in ("last.pt", "best.pt", "model.pt"):
@@ -167,10 +176,10 @@ def test_resume_continues_the_identical_run(tmp_path: Path) -> None:
     assert (straight / "model.pt").stat().st_size < (straight / "last.pt").stat().st_size
 
     # finished run: resuming is a no-op; a changed training field is refused
-    assert Trainer(_config(straight), train_dataset=PlaneDataset(), val_dataset=None).step == 4
+    assert Trainer(cfg_a, train_dataset=PlaneDataset(), val_dataset=None).step == 4
     with pytest.raises(ConfigError, match="lr"):
-        Trainer(_config(straight, lr=5e-4), train_dataset=PlaneDataset(), val_dataset=None)
-    longer = Trainer(_config(straight, steps=5, val_every=0), train_dataset=PlaneDataset())
+        Trainer(replace_config(cfg_a, lr=5e-4), train_dataset=PlaneDataset(), val_dataset=None)
+    longer = Trainer(replace_config(cfg_a, steps=5, val_every=0), train_dataset=PlaneDataset())
     assert longer.step == 4  # steps may grow on resume
 
 
@@ -208,6 +217,19 @@ def test_step_sampler_is_a_pure_function_of_seed_and_position() -> None:
         assert [next(it) for _ in range(17 - start)] == stream[start:]
     other = iter(StepSampler(5, seed=4))
     assert [next(other) for _ in range(17)] != stream
+    grouped = StepSampler(10, seed=1, group=4).permutation(0)
+    assert sorted(grouped) == list(range(10))
+    blocks = [sorted(int(i) // 4 for i in grouped[j : j + n]) for j, n in _block_spans(grouped)]
+    assert all(len(set(b)) == 1 for b in blocks) and len(blocks) == 3
+
+
+def _block_spans(order: np.ndarray) -> list[tuple[int, int]]:
+    spans, j = [], 0
+    while j < len(order):
+        n = 2 if order[j] >= 8 else 4  # blocks {0-3}, {4-7}, {8, 9}
+        spans.append((j, n))
+        j += n
+    return spans
 
 
 def test_lr_schedules(tmp_path: Path) -> None:
@@ -221,3 +243,31 @@ def test_lr_schedules(tmp_path: Path) -> None:
         replace_config(cfg, batch_size=0)
     with pytest.raises(ConfigError, match="mvsnet.root"):
         replace_config(cfg, dataset="mvsnet")
+
+
+def test_trainer_takes_its_dataset_from_the_config(tmp_path: Path) -> None:
+    from test_mvsnet_dataset import _write_blendedmvs
+
+    from colmap_pvs.synthetic import SyntheticDatasetConfig
+    from colmap_pvs.train import MVSNetDatasetConfig, build_datasets
+
+    data = SyntheticDatasetConfig(num_samples=2, width=64, height=48, samples_per_scene=2)
+    cfg = _config(tmp_path / "syn", data=data, steps=1, val_every=1, val_samples=1)
+    train_ds, val_ds = build_datasets(cfg)
+    assert len(train_ds) == 2 and val_ds.config.seed == data.seed + cfg.val_seed_offset
+    assert train_ds.config.cache_dir == tmp_path / "syn" / "scene_cache"  # default scene cache
+    Trainer(replace_config(cfg, val_every=0)).train()  # renders one scene
+    assert (tmp_path / "syn" / "model.pt").is_file() and any(
+        (tmp_path / "syn" / "scene_cache").rglob("*.npz")
+    )
+
+    _write_blendedmvs(tmp_path / "bmvs", "sceneA")
+    _write_blendedmvs(tmp_path / "bmvs", "sceneB")
+    mv = MVSNetDatasetConfig(root=tmp_path / "bmvs", layout="blendedmvs", num_views=3, scans=("sceneA",))
+    mcfg = _config(
+        tmp_path / "mv", dataset="mvsnet", mvsnet=replace_config(mv, val_scans=("sceneB",)), steps=1
+    )
+    train_ds, val_ds = build_datasets(mcfg)
+    assert train_ds.scans == ("sceneA",) and val_ds.scans == ("sceneB",)
+    Trainer(replace_config(mcfg, val_every=0)).train()
+    assert _raw(tmp_path / "mv" / "last.pt")["train_config"]["dataset"] == "mvsnet"

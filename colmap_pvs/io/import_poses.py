@@ -71,8 +71,10 @@ class ImportPosesConfig:
 
     image_path: Path = field(metadata={"help": "folder with the images"})
     poses_path: Path = field(
-        metadata={"help": "poses: a folder (hololens: K.txt/poses.txt/frames.txt; strecha: cameras/) "
-                          "or a .json / .csv file"}
+        metadata={
+            "help": "poses: a folder (hololens: K.txt/poses.txt/frames.txt; strecha: cameras/) "
+            "or a .json / .csv file"
+        }
     )
     output_path: Path = field(
         metadata={"help": "output folder: database.db and the model in sparse/ (cameras/images/points3D.bin)"}
@@ -82,11 +84,15 @@ class ImportPosesConfig:
     )
     principal_point_offset: float | None = field(
         default=None,
-        metadata={"help": "added to cx and cy (px) to reach COLMAP's pixel-centre-at-0.5 convention; "
-                          "default: 0.5 for strecha, 0 otherwise"},
+        metadata={
+            "help": "added to cx and cy (px) to reach COLMAP's pixel-centre-at-0.5 convention; "
+            "default: 0.5 for strecha, 0 otherwise"
+        },
     )
     frame_step: int = field(default=1, metadata={"help": "use every N-th image of the input list"})
-    max_images: int = field(default=0, metadata={"help": "use at most this many images (after frame_step); 0 = all"})
+    max_images: int = field(
+        default=0, metadata={"help": "use at most this many images (after frame_step); 0 = all"}
+    )
     max_num_features: int = field(default=4096, metadata={"help": "SIFT features per image"})
     feature_max_image_size: int = field(
         default=1600, metadata={"help": "SIFT runs on images downscaled to this longest side; -1 = full size"}
@@ -149,7 +155,9 @@ def _check_K(K: np.ndarray, where: str) -> np.ndarray:
     if K.shape != (3, 3) or not np.isfinite(K).all():
         raise WorkspaceError(f"{where}: K must be a finite 3x3 matrix, got {K.tolist()!r}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[0, 1]) > 1e-9 * K[0, 0] or not np.allclose(K[2], [0, 0, 1]):
-        raise WorkspaceError(f"{where}: K must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}")
+        raise WorkspaceError(
+            f"{where}: K must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {K.tolist()}"
+        )
     return K
 
 
@@ -157,7 +165,9 @@ def _pose(cam_from_world: np.ndarray, where: str) -> np.ndarray:
     T = np.asarray(cam_from_world, dtype=np.float64)
     if T.shape == (4, 4):
         if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
-            raise WorkspaceError(f"{where}: the last row of a 4x4 pose must be [0, 0, 0, 1], got {T[3].tolist()}")
+            raise WorkspaceError(
+                f"{where}: the last row of a 4x4 pose must be [0, 0, 0, 1], got {T[3].tolist()}"
+            )
         T = T[:3]
     if T.shape != (3, 4) or not np.isfinite(T).all():
         raise WorkspaceError(f"{where}: a pose must be a finite 3x4 or 4x4 matrix, got shape {T.shape}")
@@ -185,7 +195,8 @@ def _read_hololens(folder: Path, offset: float) -> list[KnownCamera]:
     poses = _read_matrix(folder / "poses.txt")
     if poses.shape[1] != 16:
         raise WorkspaceError(
-            f"{str(folder / 'poses.txt')!r}: expected 16 numbers per line (a row-major 4x4), got {poses.shape[1]}"
+            f"{str(folder / 'poses.txt')!r}: expected 16 numbers per line (a row-major 4x4), "
+            f"got {poses.shape[1]}"
         )
     frames_file = folder / "frames.txt"
     if not frames_file.is_file():
@@ -197,7 +208,7 @@ def _read_hololens(folder: Path, offset: float) -> list[KnownCamera]:
             f"{poses.shape[0]} poses"
         )
     out = []
-    for i, (name, row) in enumerate(zip(names, poses)):
+    for i, (name, row) in enumerate(zip(names, poses, strict=True)):
         world_from_cam = row.reshape(4, 4)
         where = f"{folder / 'poses.txt'}:{i + 1} ({name})"
         wfc = _pose(world_from_cam, where)
@@ -251,8 +262,11 @@ def _read_json(path: Path, offset: float) -> list[KnownCamera]:
         K = _check_K(np.array(e["K"], dtype=np.float64), where).copy()
         K[:2, 2] += offset
         size = (int(e["width"]), int(e["height"])) if "width" in e and "height" in e else None
-        out.append(KnownCamera(str(e["name"]), K, _pose(np.array(e["cam_from_world"], dtype=np.float64), where),
-                               size))
+        out.append(
+            KnownCamera(
+                str(e["name"]), K, _pose(np.array(e["cam_from_world"], dtype=np.float64), where), size
+            )
+        )
     return out
 
 
@@ -265,8 +279,9 @@ def _read_csv(path: Path, offset: float) -> list[KnownCamera]:
                 continue
             where = f"{path}:{line_no}"
             if len(row) != 17:
-                raise WorkspaceError(f"{where}: expected 17 columns (name, fx, fy, cx, cy, 12 pose values), "
-                                     f"got {len(row)}")
+                raise WorkspaceError(
+                    f"{where}: expected 17 columns (name, fx, fy, cx, cy, 12 pose values), got {len(row)}"
+                )
             try:
                 vals = np.array([float(v) for v in row[1:]])
             except ValueError:
@@ -304,7 +319,9 @@ def read_known_cameras(
     """Read known cameras in one of the supported formats; returns ``(format, cameras)``."""
     path = Path(path)
     fmt = _detect_format(path) if format == "auto" else format
-    offset = principal_point_offset if principal_point_offset is not None else (0.5 if fmt == "strecha" else 0.0)
+    offset = (
+        principal_point_offset if principal_point_offset is not None else (0.5 if fmt == "strecha" else 0.0)
+    )
     readers = {"hololens": _read_hololens, "strecha": _read_strecha, "json": _read_json, "csv": _read_csv}
     if fmt not in readers:
         raise ConfigError(f"unknown poses format {fmt!r}; expected one of {sorted(readers)}")
@@ -362,7 +379,9 @@ def import_poses(config: ImportPosesConfig) -> Path:
     image_dir = Path(config.image_path)
     out = Path(config.output_path)
     model_dir = out / "sparse"
-    if not config.overwrite and all((model_dir / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")):
+    if not config.overwrite and all(
+        (model_dir / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")
+    ):
         logger.info("import-poses: %s already holds a model (use --overwrite true to recompute)", model_dir)
         return model_dir
     if not image_dir.is_dir():
@@ -374,7 +393,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
     missing = [c.name for c in cams if not (image_dir / c.name).is_file()]
     if missing:
         raise WorkspaceError(
-            f"{len(missing)} image(s) listed in {str(config.poses_path)!r} are missing from {str(image_dir)!r}: "
+            f"{len(missing)} image(s) listed in {str(config.poses_path)!r} are missing from "
+            f"{str(image_dir)!r}: "
             f"{', '.join(missing[:5])}"
         )
     sizes = {}
@@ -400,25 +420,33 @@ def import_poses(config: ImportPosesConfig) -> Path:
     for group in groups:
         K = group[0].K
         reader = pycolmap.ImageReaderOptions(
-            camera_model="PINHOLE", camera_params=",".join(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+            camera_model="PINHOLE",
+            camera_params=",".join(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])),
         )
         pycolmap.extract_features(
-            str(db_path), str(image_dir), image_names=[c.name for c in group],
-            camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-            extraction_options=extraction, device=pycolmap.Device.cpu,
+            str(db_path),
+            str(image_dir),
+            image_names=[c.name for c in group],
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
         )
     t1 = time.perf_counter()
     logger.info("import-poses: SIFT on %d images (%d camera(s)) in %.1f s", len(cams), len(groups), t1 - t0)
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = config.num_threads
-    matcher = config.matcher if config.matcher != "auto" else ("exhaustive" if len(cams) <= 50 else "sequential")
+    matcher = (
+        config.matcher if config.matcher != "auto" else ("exhaustive" if len(cams) <= 50 else "sequential")
+    )
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(str(db_path), matching_options=matching, device=pycolmap.Device.cpu)
     else:
         pairing = pycolmap.SequentialPairingOptions(overlap=config.sequential_overlap)
-        pycolmap.match_sequential(str(db_path), matching_options=matching, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(
+            str(db_path), matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+        )
     t2 = time.perf_counter()
     logger.info("import-poses: %s matching in %.1f s", matcher, t2 - t1)
 
@@ -465,7 +493,10 @@ def import_poses(config: ImportPosesConfig) -> Path:
     logger.info(
         "import-poses: %d points, %d observations, median reprojection error %.3f px (triangulation %.1f s); "
         "model in %s",
-        result.num_points3D(), errs.size, float(np.median(errs)) if errs.size else float("nan"), t3 - t2,
+        result.num_points3D(),
+        errs.size,
+        float(np.median(errs)) if errs.size else float("nan"),
+        t3 - t2,
         model_dir,
     )
     return model_dir

@@ -32,7 +32,7 @@ class PVSNetConfig:
         metadata={"help": "1 = coarse stage only (H/4), 2 = up to H/2, 3 = up to full resolution"},
     )
     planes_per_stage: tuple[int, ...] = field(
-        default=(48, 16, 8),
+        default=(32, 16, 8),
         metadata={"help": "depth hypotheses per stage (one value per stage, multiples of 4)"},
     )
     groups_per_stage: tuple[int, ...] = field(

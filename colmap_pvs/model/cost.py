@@ -2,23 +2,36 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
 from ..errors import ShapeError
 
 
-def group_correlation(ref: torch.Tensor, warped: torch.Tensor, groups: int) -> torch.Tensor:
+def group_correlation(
+    ref: torch.Tensor,
+    warped: torch.Tensor,
+    groups: int,
+    *,
+    pixel_weight: torch.Tensor | float | None = None,
+    accumulate: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Group-wise correlation (Guo et al. 2019; paper sec. 3.2).
 
     Args:
         ref: ``[B, C, h, w]`` reference features.
         warped: ``[B, C, D, h, w]`` source features warped onto the ``D`` hypotheses.
         groups: ``G``, must divide ``C``.
+        pixel_weight: optional ``[B, 1, h, w]`` (or scalar) factor applied to the result (folded into ``ref``,
+            which is cheaper than weighting the volume).
+        accumulate: optional ``[B, G, D, h, w]`` contiguous volume the result is added to (in place).
 
     Returns:
-        ``[B, G, D, h, w]``: the mean over each group's ``C/G`` channels of ``ref * warped``.
-        Under ``torch.no_grad``/``inference_mode`` ``warped`` is overwritten (saves memory).
+        ``[B, G, D, h, w]`` (contiguous): the mean over each group's ``C/G`` channels of
+        ``ref * warped`` (times ``pixel_weight``, plus ``accumulate``). Under
+        ``torch.no_grad``/``inference_mode`` ``warped`` may be overwritten.
     """
     B, C, D, h, w = warped.shape
     if C % groups:
@@ -27,12 +40,22 @@ def group_correlation(ref: torch.Tensor, warped: torch.Tensor, groups: int) -> t
         raise ShapeError(
             f"group_correlation: ref {tuple(ref.shape)} does not match warped {tuple(warped.shape)}"
         )
-    r = ref.view(B, groups, C // groups, 1, h, w)
-    if torch.is_grad_enabled():
-        prod = warped.view(B, groups, C // groups, D, h, w) * r
+    per = C // groups
+    scale = ref * (1.0 / per) if pixel_weight is None else ref * (pixel_weight * (1.0 / per))
+    # Contiguous operands: the broadcast then runs over outer dimensions only (fast on CPU).
+    r = scale.contiguous().view(B, groups, per, 1, h, w)
+    wv = warped.contiguous().view(B, groups, per, D, h, w)
+    if accumulate is not None:
+        out = accumulate
+        start = 0
+    elif per == 1 and not torch.is_grad_enabled():
+        return wv[:, :, 0].mul_(r[:, :, 0]).contiguous()
     else:
-        prod = warped.view(B, groups, C // groups, D, h, w).mul_(r)
-    return prod.mean(2)
+        out = wv[:, :, 0] * r[:, :, 0]
+        start = 1
+    for j in range(start, per):
+        out.addcmul_(wv[:, :, j], r[:, :, j])
+    return out
 
 
 def downsample_sparse_depth(sparse_depth: torch.Tensor, scale: int) -> torch.Tensor:
@@ -55,21 +78,28 @@ def guidance_weights(
     num_planes: int,
     k: float,
     c: float,
+    *,
+    log: bool = False,
 ) -> torch.Tensor:
     """Guided-matching modulation (Poggi et al., "Guided Stereo Matching", CVPR 2019).
 
     Args:
         hint: ``[B, 1, h, w]`` sparse depth at this stage's resolution, 0 = no hint.
         inv_start, inv_step: the hypotheses (see :mod:`.warping`), broadcastable to ``[B, 1, h, w]``.
+        log: return the natural log of the factors instead (exact, no underflow far from the hint).
 
     Returns:
-        ``[B, D, h, w]`` factors ``1 - v + v * k * exp(-(x - x*)^2 / (2 c^2))`` with ``v = 1`` at
-        hinted pixels (0 elsewhere, giving factor 1), ``x`` the plane index and ``x*`` the hint's
-        (continuous) plane index, both in units of this stage's inverse-depth spacing.
+        ``[B, D, h, w]`` factors ``1 - v + v * k * exp(-(x - x*)^2 / (2 c^2))``, ``x`` the plane index
+        and ``x*`` the hint's (continuous) plane index, both in units of this stage's inverse-depth
+        spacing. ``v = 1`` at pixels with a hint whose ``x*`` lies within ``3c`` of the stage's
+        hypothesis range, 0 elsewhere (factor 1): a hint the stage cannot represent is ignored
+        rather than wiping out the matching volume.
     """
-    v = (hint > 0).to(hint.dtype)
     inv_hint = torch.where(hint > 0, 1.0 / hint.clamp_min(1e-12), torch.zeros_like(hint))
     x_star = (inv_start - inv_hint) / inv_step  # [B, 1, h, w]
+    on = (hint > 0) & (x_star >= -3.0 * c) & (x_star <= num_planes - 1 + 3.0 * c)
     x = torch.arange(num_planes, dtype=hint.dtype, device=hint.device).view(1, -1, 1, 1)
-    gauss = torch.exp(-((x - x_star) ** 2) / (2.0 * c * c))
-    return 1.0 - v + v * k * gauss
+    sq = -((x - x_star) ** 2) / (2.0 * c * c)
+    if log:
+        return torch.where(on, math.log(k) + sq, torch.zeros_like(sq))
+    return torch.where(on, k * torch.exp(sq), torch.ones_like(sq))

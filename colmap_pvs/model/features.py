@@ -24,7 +24,7 @@ class FeatureNet(nn.Module):
         super().__init__()
         c0, c1, c2 = 8, 16, 32  # encoder widths at H, H/2, H/4
         f0, f1, f2 = channels
-        self.enc0 = nn.Sequential(ConvBnReLU(3, c0, dims=2), ConvBnReLU(c0, c0, dims=2))
+        self.enc0 = ConvBnReLU(3, c0, dims=2)
         self.enc1 = nn.Sequential(
             ConvBnReLU(c0, c1, dims=2, kernel=5, stride=2),
             ConvBnReLU(c1, c1, dims=2),
@@ -45,6 +45,7 @@ class FeatureNet(nn.Module):
         self.out2 = Conv(c0, f2, dims=2, kernel=3)
 
     def forward(self, x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:
+        x = x.contiguous(memory_format=torch.channels_last)
         e0 = self.enc0(x)
         e1 = self.enc1(e0)
         e2 = self.enc2(e1)
@@ -76,5 +77,5 @@ def normalized_intensity_channels(images: torch.Tensor, count: int, scale: int =
         mean = conv_nd(padded, w, None, 1, 0)
         sq = conv_nd(padded * padded, w, None, 1, 0)
         std = (sq - mean * mean).clamp_min(0).sqrt()
-        chans.append((gray - mean) / (std + 0.02))
+        chans.append((gray - mean) / (std + 0.01))
     return torch.cat(chans, 1)

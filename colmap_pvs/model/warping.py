@@ -61,7 +61,8 @@ def homography_grid(
     Args:
         K_ref, K_src: ``[B, 3, 3]`` intrinsics of the reference and source maps (size ``height x width``).
         src_from_ref: ``[B, 4, 4]`` rigid transform from reference to source camera coordinates.
-        depths: ``[B, D]`` (fronto-parallel planes) or ``[B, D, height, width]`` (per-pixel hypotheses).
+        depths: ``[B, D]`` (fronto-parallel planes) or ``[B, D, height, width]`` (per-pixel hypotheses);
+            the grid has their dtype (the camera matrices are composed in float64).
 
     Returns:
         ``[B, D * height, width, 2]`` normalised ``(x, y)`` for ``grid_sample(align_corners=False)``:
@@ -71,7 +72,7 @@ def homography_grid(
         (outside the map, so they sample zeros).
     """
     B = K_ref.shape[0]
-    dtype, device = K_ref.dtype, K_ref.device
+    dtype, device = depths.dtype, depths.device
     D = depths.shape[1]
     # Compose the per-batch 3x3 / 3x1 maps in float64 for accuracy.
     K_ref64, K_src64, T64 = K_ref.double(), K_src.double(), src_from_ref.double()
@@ -85,19 +86,27 @@ def homography_grid(
     pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)], 0)  # [3, hw]
     rays = A @ pix  # [B, 3, hw]
     if depths.dim() == 2:
-        d = depths.view(B, 1, D, 1)
+        d = depths.view(B, D, 1)
     else:
-        d = depths.reshape(B, 1, D, height * width)
-    p = rays.unsqueeze(2) * d + b.unsqueeze(-1)  # [B, 3, D, hw]
-    z = p[:, 2]
-    valid = z > _Z_EPS
-    z = torch.where(valid, z, torch.ones_like(z))
-    gx = (2.0 / width) * p[:, 0] / z - 1.0
-    gy = (2.0 / height) * p[:, 1] / z - 1.0
-    outside = torch.full_like(gx, -2.0)
-    gx = torch.where(valid, gx.clamp(-2.0, 2.0), outside)
-    gy = torch.where(valid, gy.clamp(-2.0, 2.0), outside)
-    return torch.stack([gx, gy], -1).view(B, D * height, width, 2)
+        d = depths.reshape(B, D, height * width)
+    # Projection of X = depth * K_ref^-1 [u, v, 1]: p = depth * A [u, v, 1] + b.
+    z = torch.addcmul(b[:, 2:3], rays[:, 2:3], d)  # [B, D, hw]
+    invalid = z <= _Z_EPS
+    inv_z = torch.reciprocal(z.clamp_min_(_Z_EPS))
+    if torch.is_grad_enabled():
+        gx = torch.addcmul(b[:, 0:1], rays[:, 0:1], d)
+        gy = torch.addcmul(b[:, 1:2], rays[:, 1:2], d)
+    else:  # write straight into the interleaved grid (saves a copy)
+        grid = torch.empty(*z.shape, 2, dtype=dtype, device=device)
+        gx = torch.addcmul(b[:, 0:1], rays[:, 0:1], d, out=grid[..., 0])
+        gy = torch.addcmul(b[:, 1:2], rays[:, 1:2], d, out=grid[..., 1])
+    gx.mul_(inv_z).mul_(2.0 / width).sub_(1.0).clamp_(-2.0, 2.0)
+    gy.mul_(inv_z).mul_(2.0 / height).sub_(1.0).clamp_(-2.0, 2.0)
+    if torch.is_grad_enabled():
+        grid = torch.stack([gx, gy], -1)
+    if bool(invalid.any()):
+        grid.masked_fill_(invalid.unsqueeze(-1), -2.0)
+    return grid.view(B, D * height, width, 2)
 
 
 def warp_features(src: torch.Tensor, grid: torch.Tensor, num_planes: int) -> torch.Tensor:
@@ -111,6 +120,14 @@ def warp_features(src: torch.Tensor, grid: torch.Tensor, num_planes: int) -> tor
 
 
 def relative_pose(cam_from_world: torch.Tensor, src: int, ref: int = 0) -> torch.Tensor:
-    """``src_from_ref`` ``[B, 4, 4]`` from ``cam_from_world`` ``[B, N, 4, 4]`` (computed in float64)."""
+    """``src_from_ref`` ``[B, 4, 4]`` from ``cam_from_world`` ``[B, N, 4, 4]`` (computed in float64).
+
+    Uses the closed-form rigid inverse ``[R^T | -R^T t]`` of the reference pose.
+    """
     T = cam_from_world.double()
-    return (T[:, src] @ torch.linalg.inv(T[:, ref])).to(cam_from_world.dtype)
+    R, t = T[:, ref, :3, :3], T[:, ref, :3, 3:]
+    inv = torch.zeros_like(T[:, ref])
+    inv[:, :3, :3] = R.transpose(1, 2)
+    inv[:, :3, 3:] = -R.transpose(1, 2) @ t
+    inv[:, 3, 3] = 1.0
+    return (T[:, src] @ inv).to(cam_from_world.dtype)

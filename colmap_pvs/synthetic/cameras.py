@@ -46,8 +46,12 @@ class CameraConfig:
     trajectory: Literal["video", "unstructured", "mixed"] = field(
         default="mixed", metadata={"help": "capture style: video (small baselines), unstructured, or mixed"}
     )
-    num_views: tuple[int, ...] = field(default=(10, 14), metadata={"help": "range (lo, hi) of views per scene"})
-    hfov_deg: tuple[float, ...] = field(default=(50.0, 75.0), metadata={"help": "horizontal field of view range"})
+    num_views: tuple[int, ...] = field(
+        default=(10, 14), metadata={"help": "range (lo, hi) of views per scene"}
+    )
+    hfov_deg: tuple[float, ...] = field(
+        default=(50.0, 75.0), metadata={"help": "horizontal field of view range"}
+    )
     zoom_jitter: float = field(
         default=0.15, metadata={"help": "unstructured views: relative per-view focal length change (+-)"}
     )
@@ -79,7 +83,13 @@ class CameraConfig:
             object.__setattr__(self, name, _pair(name, getattr(self, name)))
         if not (1.0 <= self.hfov_deg[0] and self.hfov_deg[1] < 170.0):
             raise ConfigError(f"hfov_deg must lie in [1, 170), got {self.hfov_deg!r}")
-        for name in ("disturbing_fraction", "min_coverage", "zoom_jitter", "principal_jitter", "target_jitter"):
+        for name in (
+            "disturbing_fraction",
+            "min_coverage",
+            "zoom_jitter",
+            "principal_jitter",
+            "target_jitter",
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.max_attempts < 1 or self.check_width < 8:
@@ -120,8 +130,9 @@ class CameraRig:
         return np.array([i for i, r in enumerate(self.roles) if r in REFERENCE_ROLES], np.int64)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0),
-            roll_deg: float = 0.0) -> np.ndarray:
+def look_at(
+    eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0), roll_deg: float = 0.0
+) -> np.ndarray:
     """``[3, 4]`` ``cam_from_world`` of a camera at ``eye`` looking at ``target`` (OpenCV axes).
 
     The image's "up" (-y) is as close to ``up`` as possible, then rolled by ``roll_deg``.
@@ -146,15 +157,22 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0
     return np.concatenate([R, (-R @ eye)[:, None]], 1)
 
 
-def intrinsics(width: int, height: int, hfov_deg: float, aspect: float = 1.0,
-               principal_offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+def intrinsics(
+    width: int,
+    height: int,
+    hfov_deg: float,
+    aspect: float = 1.0,
+    principal_offset: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     """``[3, 3]`` pinhole ``K`` for a horizontal field of view (pixel-centre convention: cx = W/2)."""
     fx = width / 2 / np.tan(np.radians(hfov_deg) / 2)
-    return np.array([
-        [fx, 0.0, width / 2 + principal_offset[0] * width],
-        [0.0, fx * aspect, height / 2 + principal_offset[1] * height],
-        [0.0, 0.0, 1.0],
-    ])
+    return np.array(
+        [
+            [fx, 0.0, width / 2 + principal_offset[0] * width],
+            [0.0, fx * aspect, height / 2 + principal_offset[1] * height],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def _direction(az_deg: float, el_deg: float) -> np.ndarray:
@@ -165,8 +183,15 @@ def _direction(az_deg: float, el_deg: float) -> np.ndarray:
 class _Sampler:
     """Shared state while one rig is generated."""
 
-    def __init__(self, scene: Scene, renderer: Renderer, config: CameraConfig, width: int, height: int,
-                 rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        renderer: Renderer,
+        config: CameraConfig,
+        width: int,
+        height: int,
+        rng: np.random.Generator,
+    ) -> None:
         self.scene, self.renderer, self.config, self.rng = scene, renderer, config, rng
         self.width, self.height = width, height
         self.vs = scene.view_space
@@ -191,9 +216,9 @@ class _Sampler:
     def roi_hidden_fraction(self, eye: np.ndarray) -> float:
         """Fraction of a few ROI sample points hidden from ``eye`` (0 = all visible)."""
         sc = self.scene
-        pts = sc.roi_center + np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 0.5]]) * (
-            0.3 * sc.roi_radius
-        )
+        pts = sc.roi_center + np.array(
+            [[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 0.5]]
+        ) * (0.3 * sc.roi_radius)
         d = pts - eye
         t, _, _ = self.renderer.cast(eye, d)
         return float(np.mean(t < 0.9))
@@ -263,13 +288,22 @@ class _Sampler:
     def video(self, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """``n`` views along a smooth path with small steps."""
         c = self.config
+        start = None
         for _ in range(c.max_attempts):
             az, el, dist = self.spherical()
             eye = self.eye_of(az, el, dist)
+            if not self.eye_ok(eye):
+                continue
             K = self.K()
-            pose = look_at(eye, self.scene.roi_center)
-            if self.eye_ok(eye) and self.good_reference(K, pose, eye):
+            if start is None:
+                start = (az, el, dist, K)
+            if self.good_reference(K, look_at(eye, self.scene.roi_center), eye):
+                start = (az, el, dist, K)
                 break
+        if start is None:  # no valid start: fall back to independent views
+            logger.debug("scene seed %d: no valid start for a video path", self.scene.seed)
+            return [self.unstructured() for _ in range(n)]
+        az, el, dist, K = start
         step = float(self.rng.uniform(*c.video_step_deg)) * (1 if self.rng.random() < 0.5 else -1)
         drift = self.rng.normal(0, 0.15 * self.scene.roi_radius * c.target_jitter, 3)
         target = self.scene.roi_center.copy()
@@ -326,8 +360,8 @@ class _Sampler:
                 return K, pose
         return None
 
-    def low_overlap(self) -> tuple[np.ndarray, np.ndarray]:
-        """A view that turns away from the ROI so that it is at or beyond the image border."""
+    def low_overlap(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A view turned away from the ROI so that it is at or beyond the image border, or ``None``."""
         c = self.config
         for _ in range(c.max_attempts):
             az, el, dist = self.spherical()
@@ -342,17 +376,22 @@ class _Sampler:
             side /= np.linalg.norm(side)
             if self.rng.random() < 0.3:
                 side = np.cross(side, f)  # turn up or down instead
-            turn = np.radians(self.hfov) * float(self.rng.uniform(0.45, 0.8)) * (1 if self.rng.random() < 0.5 else -1)
+            turn = (
+                np.radians(self.hfov)
+                * float(self.rng.uniform(0.45, 0.8))
+                * (1 if self.rng.random() < 0.5 else -1)
+            )
             new_f = np.cos(turn) * f + np.sin(turn) * side
             K = self.K()
             pose = look_at(eye, eye + new_f, roll_deg=self.rng.uniform(-c.max_roll_deg, c.max_roll_deg))
             if self.coverage(K, pose)[0] > 0.2:
                 return K, pose
-        return self.unstructured()
+        return None
 
 
-def generate_cameras(scene: Scene, renderer: Renderer, config: CameraConfig, width: int, height: int,
-                     rng: np.random.Generator) -> CameraRig:
+def generate_cameras(
+    scene: Scene, renderer: Renderer, config: CameraConfig, width: int, height: int, rng: np.random.Generator
+) -> CameraRig:
     """A rig of ``config.num_views`` cameras for ``scene`` (deterministic given ``rng``'s state)."""
     if width < 8 or height < 8:
         raise ConfigError(f"image size must be at least 8x8, got {width}x{height}")
@@ -378,9 +417,14 @@ def generate_cameras(scene: Scene, renderer: Renderer, config: CameraConfig, wid
         if v is not None:
             views.append(v)
             roles.append("occluded")
-        else:
-            views.append(s.low_overlap())
+            continue
+        v = s.low_overlap()
+        if v is not None:
+            views.append(v)
             roles.append("low_overlap")
+        else:  # no place for a disturbing view: add an ordinary one
+            views.append(s.unstructured())
+            roles.append("unstructured")
     order = rng.permutation(len(views)) if style != "video" else np.arange(len(views))
     if style == "video":  # keep the video in order, put disturbing views at random positions
         main = list(range(n_main))
@@ -389,4 +433,6 @@ def generate_cameras(scene: Scene, renderer: Renderer, config: CameraConfig, wid
         order = np.array(main)
     K = np.stack([views[i][0] for i in order])
     poses = np.stack([views[i][1] for i in order])
-    return CameraRig(K=K, cam_from_world=poses, roles=tuple(roles[i] for i in order), width=width, height=height)
+    return CameraRig(
+        K=K, cam_from_world=poses, roles=tuple(roles[i] for i in order), width=width, height=height
+    )

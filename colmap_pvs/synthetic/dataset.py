@@ -4,7 +4,10 @@ Sample ``i`` belongs to scene ``i // samples_per_scene``; the scene's seed is de
 ``(config.seed, scene_index)``, so every sample is reproducible on its own (any worker,
 any order). A scene (images, GT depths, cameras, simulated sparse points) is rendered once
 and cached as one compressed ``.npz`` (uint8 images, float32 depths) under
-``cache_dir/<hash of the generation config>/``; later requests load it instead.
+``cache_dir/<hash of the generation config>/``; later requests load it instead. Without a
+``cache_dir`` only the last ``memory_cache`` scenes are kept, so a shuffled sample order
+(every sample of a scene requested at a different time) renders scenes repeatedly: training
+should set ``cache_dir``.
 
 Each sample takes one reference view (never a "disturbing" one) and ``num_best + num_worst``
 source views chosen from the MVSNet view-selection scores of the simulated sparse model
@@ -39,15 +42,21 @@ from torch.utils.data import Dataset
 from ..config import atomic_write_bytes, config_to_dict
 from ..errors import ConfigError
 from ..types import SparseModel
-from ..views import ViewSelectionConfig, best_and_worst, compute_depth_range, compute_view_scores, rank_sources
+from ..views import (
+    ViewSelectionConfig,
+    best_and_worst,
+    compute_depth_range,
+    compute_view_scores,
+    rank_sources,
+)
 from .cameras import REFERENCE_ROLES, CameraConfig, CameraRig, generate_cameras
-from .render import Renderer, RenderConfig, _pair, apply_photometric
+from .render import RenderConfig, Renderer, _pair, apply_photometric
 from .scenes import Scene, SceneConfig, build_scene
 from .sfm import SimulatedPoints, build_sparse_model, project, simulate_sparse_points
 
 logger = logging.getLogger(__name__)
 
-CACHE_FORMAT_VERSION = 1
+CACHE_FORMAT_VERSION = 2
 """Bumped whenever generation changes in a way that invalidates cached scenes."""
 
 SAMPLE_KEYS = ("images", "intrinsics", "cam_from_world", "depth", "depth_min", "depth_max", "sparse_depth")
@@ -104,16 +113,32 @@ class SceneViews:
     def sparse_model(self, names: list[str] | None = None) -> SparseModel:
         """The simulated sparse model (PINHOLE cameras, ids ``1..V`` in view order)."""
         p = self.points
-        return build_sparse_model(self.K, self.cam_from_world, self.width, self.height,
-                                  names or self.image_names(), p.xyz, p.rgb, p.visibility)
+        return build_sparse_model(
+            self.K,
+            self.cam_from_world,
+            self.width,
+            self.height,
+            names or self.image_names(),
+            p.xyz,
+            p.rgb,
+            p.visibility,
+        )
 
     def to_npz_bytes(self) -> bytes:
         buf = io.BytesIO()
         arrays = dict(
-            version=np.int64(CACHE_FORMAT_VERSION), family=np.str_(self.family), seed=np.int64(self.seed),
-            images=self.images, depths=self.depths.astype(np.float32), K=self.K, cam_from_world=self.cam_from_world,
-            roles=np.array(self.roles), xyz=self.points.xyz, rgb=self.points.rgb,
-            visibility=np.packbits(self.points.visibility, axis=1), num_views=np.int64(self.num_views),
+            version=np.int64(CACHE_FORMAT_VERSION),
+            family=np.str_(self.family),
+            seed=np.int64(self.seed),
+            images=self.images,
+            depths=self.depths.astype(np.float32),
+            K=self.K,
+            cam_from_world=self.cam_from_world,
+            roles=np.array(self.roles),
+            xyz=self.points.xyz,
+            rgb=self.points.rgb,
+            visibility=np.packbits(self.points.visibility, axis=1),
+            num_views=np.int64(self.num_views),
         )
         if self.normals is not None:
             arrays["normals"] = self.normals.astype(np.float16)
@@ -124,21 +149,35 @@ class SceneViews:
     def from_npz(cls, path: str | os.PathLike) -> SceneViews:
         with np.load(path, allow_pickle=False) as z:
             if int(z["version"]) != CACHE_FORMAT_VERSION:
-                raise ValueError(f"cache file {str(path)!r} has format {int(z['version'])}, "
-                                 f"expected {CACHE_FORMAT_VERSION}")
+                raise ValueError(
+                    f"cache file {str(path)!r} has format {int(z['version'])}, "
+                    f"expected {CACHE_FORMAT_VERSION}"
+                )
             V = int(z["num_views"])
             vis = np.unpackbits(z["visibility"], axis=1, count=V).astype(bool)
             return cls(
-                family=str(z["family"]), seed=int(z["seed"]), images=z["images"], depths=z["depths"],
+                family=str(z["family"]),
+                seed=int(z["seed"]),
+                images=z["images"],
+                depths=z["depths"],
                 normals=z["normals"].astype(np.float32) if "normals" in z.files else None,
-                K=z["K"], cam_from_world=z["cam_from_world"], roles=tuple(str(r) for r in z["roles"]),
+                K=z["K"],
+                cam_from_world=z["cam_from_world"],
+                roles=tuple(str(r) for r in z["roles"]),
                 points=SimulatedPoints(xyz=z["xyz"], rgb=z["rgb"], visibility=vis),
             )
 
 
-def render_scene_views(seed: int, width: int, height: int, scene: SceneConfig | None = None,
-                       camera: CameraConfig | None = None, render: RenderConfig | None = None,
-                       num_points: int = 1500, keep_normals: bool = False) -> SceneViews:
+def render_scene_views(
+    seed: int,
+    width: int,
+    height: int,
+    scene: SceneConfig | None = None,
+    camera: CameraConfig | None = None,
+    render: RenderConfig | None = None,
+    num_points: int = 1500,
+    keep_normals: bool = False,
+) -> SceneViews:
     """Build scene ``seed``, place cameras, render every view and simulate the sparse points.
 
     Deterministic: the same arguments give identical arrays.
@@ -146,38 +185,105 @@ def render_scene_views(seed: int, width: int, height: int, scene: SceneConfig | 
     return render_scene(seed, width, height, scene, camera, render, num_points, keep_normals)[0]
 
 
-def render_scene(seed: int, width: int, height: int, scene: SceneConfig | None = None,
-                 camera: CameraConfig | None = None, render: RenderConfig | None = None,
-                 num_points: int = 1500, keep_normals: bool = False) -> tuple[SceneViews, Scene]:
+def render_scene(
+    seed: int,
+    width: int,
+    height: int,
+    scene: SceneConfig | None = None,
+    camera: CameraConfig | None = None,
+    render: RenderConfig | None = None,
+    num_points: int = 1500,
+    keep_normals: bool = False,
+) -> tuple[SceneViews, Scene]:
     """:func:`render_scene_views`, also returning the :class:`~.scenes.Scene` itself."""
     scene_cfg, cam_cfg, ren_cfg = scene or SceneConfig(), camera or CameraConfig(), render or RenderConfig()
     sc = build_scene(scene_cfg, seed)
     renderer = Renderer(sc)
     rig = generate_cameras(sc, renderer, cam_cfg, width, height, _seed(seed, 1))
+    return render_views(renderer, rig, seed, ren_cfg, num_points, keep_normals), sc
+
+
+def render_views(
+    renderer: Renderer,
+    rig: CameraRig,
+    seed: int,
+    render: RenderConfig | None = None,
+    num_points: int = 1500,
+    keep_normals: bool = False,
+) -> SceneViews:
+    """Render every camera of ``rig`` (with per-view photometric changes) and simulate the sparse points.
+
+    ``seed`` seeds the photometric changes (per view) and the sparse-point sampling.
+    """
+    ren_cfg = render or RenderConfig()
+    h, w = rig.height, rig.width
     images, depths, normals = [], [], []
     for v in range(len(rig)):
-        view = renderer.render(rig.K[v], rig.cam_from_world[v], height, width, ren_cfg.supersample,
-                               ren_cfg.shadows)
+        view = renderer.render(rig.K[v], rig.cam_from_world[v], h, w, ren_cfg.supersample, ren_cfg.shadows)
         images.append(apply_photometric(view.image, _seed(seed, 2, v), ren_cfg))
         depths.append(view.depth)
         normals.append(view.normals)
     images_a, depths_a, normals_a = np.stack(images), np.stack(depths), np.stack(normals)
     points = simulate_sparse_points(renderer, rig, images_a, depths_a, normals_a, _seed(seed, 3), num_points)
-    views = SceneViews(family=sc.family, seed=int(seed), images=images_a, depths=depths_a,
-                       normals=normals_a if keep_normals else None, K=rig.K, cam_from_world=rig.cam_from_world,
-                       roles=rig.roles, points=points)
-    return views, sc
+    return SceneViews(
+        family=renderer.scene.family,
+        seed=int(seed),
+        images=images_a,
+        depths=depths_a,
+        normals=normals_a if keep_normals else None,
+        K=rig.K,
+        cam_from_world=rig.cam_from_world,
+        roles=rig.roles,
+        points=points,
+    )
+
+
+def select_sources(
+    score_row: np.ndarray, strategy: str, num_best: int, num_worst: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Source views of one reference from its ``[V]`` score row (the reference itself ``-inf``).
+
+    ``"anti_noise"``: :func:`colmap_pvs.views.best_and_worst`; ``"best"``: the ``num_best + num_worst``
+    best candidates (all returned as "best"). When there are too few candidates (views sharing
+    sparse points), the remaining slots are filled, as "worst", with non-candidate views in index
+    order, so that every sample has ``num_best + num_worst`` sources when the scene has enough views.
+
+    Returns:
+        ``(best [b] int64, worst [w] int64)`` view indices, ``b + w = min(num_best + num_worst, V - 1)``.
+    """
+    row = np.asarray(score_row, np.float64)
+    n_src = num_best + num_worst
+    if strategy == "anti_noise":
+        best, worst = best_and_worst(row, num_best, num_worst)
+    elif strategy == "best":
+        best, worst = rank_sources(row)[:n_src], np.zeros(0, np.int64)
+    else:
+        raise ConfigError(f"unknown source_strategy {strategy!r}; expected 'anti_noise' or 'best'")
+    taken = set(best.tolist()) | set(worst.tolist())
+    if len(taken) < n_src:
+        others = [v for v in range(row.size) if v not in taken and np.isfinite(row[v])]
+        worst = np.concatenate([worst, np.array(others[: n_src - len(taken)], np.int64)])
+    return best.astype(np.int64), worst.astype(np.int64)
 
 
 def rig_of(views: SceneViews) -> CameraRig:
     """The :class:`~.cameras.CameraRig` of rendered views."""
-    return CameraRig(K=views.K, cam_from_world=views.cam_from_world, roles=views.roles, width=views.width,
-                     height=views.height)
+    return CameraRig(
+        K=views.K,
+        cam_from_world=views.cam_from_world,
+        roles=views.roles,
+        width=views.width,
+        height=views.height,
+    )
 
 
-def sparse_depth_map(xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int,
-                     width: int) -> np.ndarray:
-    """``[H, W]`` float32 depth of the points ``[P, 3]`` at the pixels they project into (nearest wins), else 0."""
+def sparse_depth_map(
+    xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """``[H, W]`` float32 depth of the points ``[P, 3]`` at the pixels they project into, else 0.
+
+    Pixel ``(col, row)`` receives the points with ``floor(u) = col, floor(v) = row``; the nearest wins.
+    """
     out = np.zeros((height, width), np.float32)
     if xyz.shape[0] == 0:
         return out
@@ -207,21 +313,31 @@ class SyntheticDatasetConfig:
     )
     source_strategy: Literal["anti_noise", "best"] = field(
         default="anti_noise",
-        metadata={"help": "anti_noise: num_best best + num_worst worst sources; best: num_best+num_worst best"},
+        metadata={
+            "help": "anti_noise: num_best best + num_worst worst sources; best: num_best+num_worst best"
+        },
     )
     num_best: int = field(default=2, metadata={"help": "best-scoring source views per sample"})
     num_worst: int = field(default=2, metadata={"help": "worst-scoring source views per sample (anti_noise)"})
     shuffle_sources: bool = field(default=True, metadata={"help": "shuffle the order of the source views"})
-    num_points: int = field(default=1500, metadata={"help": "sparse points sampled per scene (before filtering)"})
+    num_points: int = field(
+        default=1500, metadata={"help": "sparse points sampled per scene (before filtering)"}
+    )
     depth_percentiles: tuple[float, ...] = field(
-        default=(1.0, 99.0), metadata={"help": "percentiles of the reference's sparse depths giving the range"}
+        default=(1.0, 99.0),
+        metadata={"help": "percentiles of the reference's sparse depths giving the range"},
     )
     depth_margin: float = field(default=0.1, metadata={"help": "relative margin added to the depth range"})
     min_depth_inside: float = field(
         default=0.85, metadata={"help": "minimum fraction of valid GT depth inside [depth_min, depth_max]"}
     )
-    cache_dir: Path | None = field(default=None, metadata={"help": "scene cache folder (None: no disk cache)"})
-    memory_cache: int = field(default=4, metadata={"help": "scenes kept in memory per dataset instance"})
+    cache_dir: Path | None = field(
+        default=None, metadata={"help": "scene cache folder (None: no disk cache)"}
+    )
+    memory_cache: int = field(
+        default=32,
+        metadata={"help": "scenes kept in memory per dataset instance (about 2 MB each at 160x128)"},
+    )
     scene: SceneConfig = field(default_factory=SceneConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -229,13 +345,15 @@ class SyntheticDatasetConfig:
     def __post_init__(self) -> None:
         if self.num_samples < 1 or self.samples_per_scene < 1:
             raise ConfigError(
-                f"num_samples and samples_per_scene must be >= 1, got {self.num_samples}, {self.samples_per_scene}"
+                "num_samples and samples_per_scene must be >= 1, got "
+                f"{self.num_samples}, {self.samples_per_scene}"
             )
         if self.width < 8 or self.height < 8:
             raise ConfigError(f"image size must be at least 8x8, got {self.width}x{self.height}")
         if self.num_best < 0 or self.num_worst < 0 or self.num_best + self.num_worst < 1:
             raise ConfigError(
-                f"need num_best, num_worst >= 0 and at least one source, got {self.num_best}, {self.num_worst}"
+                "need num_best, num_worst >= 0 and at least one source, got "
+                f"{self.num_best}, {self.num_worst}"
             )
         if self.camera.num_views[0] < 1 + self.num_sources:
             raise ConfigError(
@@ -249,7 +367,9 @@ class SyntheticDatasetConfig:
                 f"{self.min_depth_inside}"
             )
         if self.num_points < 1 or self.memory_cache < 0:
-            raise ConfigError(f"num_points must be >= 1, memory_cache >= 0; got {self.num_points}, {self.memory_cache}")
+            raise ConfigError(
+                f"num_points must be >= 1, memory_cache >= 0; got {self.num_points}, {self.memory_cache}"
+            )
 
     @property
     def num_sources(self) -> int:
@@ -291,6 +411,8 @@ class SyntheticMVSDataset(Dataset):
             Path(self.config.cache_dir) / self.config.generation_key() if self.config.cache_dir else None
         )
         self.stats = {"generated": 0, "loaded": 0, "generate_s": 0.0}
+        self._generated: set[int] = set()
+        self._warned_regeneration = False
 
     def __len__(self) -> int:
         return self.config.num_samples
@@ -329,9 +451,19 @@ class SyntheticMVSDataset(Dataset):
         if views is None:
             c = self.config
             t0 = time.perf_counter()
-            views = render_scene_views(self.scene_seed(scene_index), c.width, c.height, c.scene, c.camera,
-                                       c.render, c.num_points)
+            views = render_scene_views(
+                self.scene_seed(scene_index), c.width, c.height, c.scene, c.camera, c.render, c.num_points
+            )
             self.stats["generated"] += 1
+            if scene_index in self._generated and path is None and not self._warned_regeneration:
+                logger.warning(
+                    "synthetic scene %d was rendered again because it fell out of the memory cache "
+                    "(memory_cache=%d) and there is no disk cache: set cache_dir to render each scene once",
+                    scene_index,
+                    self.config.memory_cache,
+                )
+                self._warned_regeneration = True
+            self._generated.add(scene_index)
             self.stats["generate_s"] += time.perf_counter() - t0
             if path is not None:
                 atomic_write_bytes(path, views.to_npz_bytes())
@@ -346,8 +478,12 @@ class SyntheticMVSDataset(Dataset):
 
     def _view_config(self) -> ViewSelectionConfig:
         c = self.config
-        return ViewSelectionConfig(num_views=1 + c.num_sources, depth_percentiles=c.depth_percentiles,
-                                   depth_margin=c.depth_margin, min_points=5)
+        return ViewSelectionConfig(
+            num_views=1 + c.num_sources,
+            depth_percentiles=c.depth_percentiles,
+            depth_margin=c.depth_margin,
+            min_points=5,
+        )
 
     def prepare(self, scene_indices: list[int] | None = None, progress: bool = True) -> None:
         """Generate (and cache) scenes ahead of training; with no indices, all of them."""
@@ -390,33 +526,36 @@ class SyntheticMVSDataset(Dataset):
                 break
         if chosen is None:
             if fallback is None:
-                raise RuntimeError(f"scene {scene_index} (seed {seed}) has no reference view with sparse points")
+                raise RuntimeError(
+                    f"scene {scene_index} (seed {seed}) has no reference view with sparse points"
+                )
             ref, _, _ = fallback
             gt = views.depths[ref]
             lo, hi = np.percentile(gt[gt > 0], [1, 99])
             chosen = (ref, (float(lo) * (1 - c.depth_margin), float(hi) * (1 + c.depth_margin)))
-            logger.debug("scene %d: no reference with >= %.0f%% GT depth inside the sparse range; widened it",
-                         scene_index, 100 * c.min_depth_inside)
+            logger.debug(
+                "scene %d: no reference with >= %.0f%% GT depth inside the sparse range; widened it",
+                scene_index,
+                100 * c.min_depth_inside,
+            )
         ref, depth_range = chosen
         row = scores[ref].copy()
         row[ref] = -np.inf
-        if c.source_strategy == "anti_noise":
-            best, worst = best_and_worst(row, c.num_best, c.num_worst)
-        else:
-            best, worst = rank_sources(row)[: c.num_sources], np.zeros(0, np.int64)
+        best, worst = select_sources(row, c.source_strategy, c.num_best, c.num_worst)
         chosen_src = [int(x) for x in np.concatenate([best, worst])]
-        if len(chosen_src) < c.num_sources:  # too few candidates: fill with non-overlapping views
-            rest = [v for v in range(views.num_views) if v != ref and v not in chosen_src]
-            rest = sorted(rest, key=lambda v: (row[v], v))
-            extra = rest[: c.num_sources - len(chosen_src)]
-            worst = np.concatenate([worst, np.array(extra, np.int64)])
-            chosen_src += extra
         sources = np.array(chosen_src, np.int64)
         if c.shuffle_sources:
             sources = _seed(seed, 8, index).permutation(sources)
-        info = SampleInfo(scene_index=scene_index, scene_seed=seed, family=views.family, reference=ref,
-                          sources=tuple(int(s) for s in sources), best=tuple(int(b) for b in best),
-                          worst=tuple(int(w) for w in worst), roles=views.roles)
+        info = SampleInfo(
+            scene_index=scene_index,
+            scene_seed=seed,
+            family=views.family,
+            reference=ref,
+            sources=tuple(int(s) for s in sources),
+            best=tuple(int(b) for b in best),
+            worst=tuple(int(w) for w in worst),
+            roles=views.roles,
+        )
         return info, views, depth_range
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
@@ -439,8 +578,9 @@ class SyntheticMVSDataset(Dataset):
         poses[:, :3, :] = views.cam_from_world[idx]
         ref = info.reference
         observed = views.points.visibility[:, ref]
-        sparse = sparse_depth_map(views.points.xyz[observed], views.K[ref], views.cam_from_world[ref],
-                                  views.height, views.width)
+        sparse = sparse_depth_map(
+            views.points.xyz[observed], views.K[ref], views.cam_from_world[ref], views.height, views.width
+        )
         return {
             "images": torch.from_numpy(images),
             "intrinsics": torch.from_numpy(views.K[idx].astype(np.float32)),
@@ -460,6 +600,8 @@ __all__ = [
     "SyntheticMVSDataset",
     "render_scene",
     "render_scene_views",
+    "render_views",
+    "select_sources",
     "rig_of",
     "sparse_depth_map",
 ]

@@ -50,14 +50,21 @@ class MeshBuilder:
         self._uvs: list[np.ndarray] = []
         self._tex: list[np.ndarray] = []
         self._density: list[np.ndarray] = []
+        self._part: list[np.ndarray] = []
         self._count = 0
         self.aabbs: list[np.ndarray] = []
         """``[2, 3]`` bounds of every primitive added, in order."""
 
     # ------------------------------------------------------------------ core
 
-    def add_triangles(self, vertices: np.ndarray, triangles: np.ndarray, surface_uv: np.ndarray,
-                      material: Material, triangle_texture: np.ndarray | None = None) -> None:
+    def add_triangles(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        surface_uv: np.ndarray,
+        material: Material,
+        triangle_texture: np.ndarray | None = None,
+    ) -> None:
         """Add a triangle soup.
 
         Args:
@@ -89,11 +96,17 @@ class MeshBuilder:
         self._uvs.append(uv.astype(np.float32))
         self._tex.append(tex)
         self._density.append(np.full(n_tri, material.density, np.float32))
+        self._part.append(np.full(n_tri, len(self._part), np.int32))
         self._count += vertices.shape[0]
         self.aabbs.append(np.stack([vertices.min(0), vertices.max(0)]))
 
-    def add_grid(self, points: np.ndarray, surface_uv: np.ndarray, material: Material,
-                 cell_texture: np.ndarray | None = None) -> None:
+    def add_grid(
+        self,
+        points: np.ndarray,
+        surface_uv: np.ndarray,
+        material: Material,
+        cell_texture: np.ndarray | None = None,
+    ) -> None:
         """Add a ``[nu, nv]`` grid of points (``[nu, nv, 3]``) with ``[nu, nv, 2]`` surface coordinates.
 
         Each grid cell becomes two triangles; ``cell_texture`` (``[nu - 1, nv - 1]``) optionally
@@ -109,12 +122,21 @@ class MeshBuilder:
 
     # ------------------------------------------------------------------ primitives
 
-    def add_quad(self, origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray, material: Material) -> None:
+    def add_quad(
+        self, origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray, material: Material
+    ) -> None:
         """A parallelogram ``origin + s * axis_u + t * axis_v``, ``s, t`` in [0, 1]."""
         self.add_heightfield(origin, axis_u, axis_v, np.zeros((2, 2)), material)
 
-    def add_heightfield(self, origin: np.ndarray, axis_u: np.ndarray, axis_v: np.ndarray,
-                        heights: np.ndarray, material: Material, cell_texture: np.ndarray | None = None) -> None:
+    def add_heightfield(
+        self,
+        origin: np.ndarray,
+        axis_u: np.ndarray,
+        axis_v: np.ndarray,
+        heights: np.ndarray,
+        material: Material,
+        cell_texture: np.ndarray | None = None,
+    ) -> None:
         """A bumpy rectangle: ``origin + s * axis_u + t * axis_v + h(s, t) * n``.
 
         Args:
@@ -134,8 +156,14 @@ class MeshBuilder:
         uv = np.concatenate([np.broadcast_to(s * lu, (nu, nv, 1)), np.broadcast_to(t * lv, (nu, nv, 1))], -1)
         self.add_grid(pts, uv, material, cell_texture)
 
-    def add_box(self, center: np.ndarray, size: np.ndarray, yaw: float, materials: Material | list[Material],
-                skip_bottom: bool = False) -> None:
+    def add_box(
+        self,
+        center: np.ndarray,
+        size: np.ndarray,
+        yaw: float,
+        materials: Material | list[Material],
+        skip_bottom: bool = False,
+    ) -> None:
         """An oriented box: ``size`` ``[3]`` edge lengths, rotated by ``yaw`` about +z around ``center``."""
         center = np.asarray(center, np.float64)
         hx, hy, hz = np.asarray(size, np.float64) / 2
@@ -156,8 +184,14 @@ class MeshBuilder:
                 continue
             self.add_quad(o, u, v, materials[k])
 
-    def add_sphere(self, center: np.ndarray, radius: float, material: Material, segments: int = 32,
-                   bumps: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+    def add_sphere(
+        self,
+        center: np.ndarray,
+        radius: float,
+        material: Material,
+        segments: int = 32,
+        bumps: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         """A UV sphere (``segments`` longitudes, ``segments // 2`` latitudes), optionally bumpy.
 
         Args:
@@ -167,8 +201,10 @@ class MeshBuilder:
         n_lat = max(segments // 2, 3)
         lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)[:, None]
         lon = np.linspace(0, 2 * np.pi, segments + 1)[None, :]
-        d = np.stack(np.broadcast_arrays(np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon),
-                                         np.sin(lat) + 0 * lon), -1)
+        d = np.stack(
+            np.broadcast_arrays(np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat) + 0 * lon),
+            -1,
+        )
         r = np.full(d.shape[:2], float(radius))
         if bumps is not None:
             dirs, amps, widths = bumps
@@ -178,9 +214,17 @@ class MeshBuilder:
         uv = np.concatenate(np.broadcast_arrays(lon[..., None] * radius, lat[..., None] * radius), -1)
         self.add_grid(pts, uv, material)
 
-    def add_cylinder(self, base: np.ndarray, radius_bottom: float, radius_top: float, height: float,
-                     material: Material, cap_material: Material | None = None, segments: int = 24,
-                     caps: bool = True) -> None:
+    def add_cylinder(
+        self,
+        base: np.ndarray,
+        radius_bottom: float,
+        radius_top: float,
+        height: float,
+        material: Material,
+        cap_material: Material | None = None,
+        segments: int = 24,
+        caps: bool = True,
+    ) -> None:
         """A vertical cylinder / cone frustum standing on ``base`` (centre of its bottom disc)."""
         base = np.asarray(base, np.float64)
         ang = np.linspace(0, 2 * np.pi, segments + 1)
@@ -207,8 +251,12 @@ class MeshBuilder:
     # ------------------------------------------------------------------ output
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The merged mesh: ``vertices [V, 3]`` float64, ``triangles [F, 3]`` int32, ``uvs [V, 2]``
-        float32 (tiles), ``triangle_texture [F]`` int32, ``triangle_density [F]`` float32."""
+        """The merged mesh.
+
+        Keys: ``vertices [V, 3]`` float64, ``triangles [F, 3]`` int32, ``uvs [V, 2]`` float32 (tiles),
+        ``triangle_texture [F]`` int32, ``triangle_density [F]`` float32 and ``triangle_part [F]`` int32
+        (one id per :meth:`add_triangles` call: a box face, a sphere, a height field...).
+        """
         if not self._vertices:
             raise ShapeError("the mesh is empty: no primitive was added")
         return {
@@ -217,4 +265,5 @@ class MeshBuilder:
             "uvs": np.concatenate(self._uvs),
             "triangle_texture": np.concatenate(self._tex),
             "triangle_density": np.concatenate(self._density),
+            "triangle_part": np.concatenate(self._part),
         }

@@ -41,17 +41,24 @@ def _pair(name: str, value: tuple[float, ...], lo: float = 0.0) -> tuple[float, 
 class RenderConfig:
     """Rendering and per-view photometric changes (all random draws are seeded per view)."""
 
-    supersample: int = field(default=2, metadata={"help": "colour rays per pixel along each axis (1 = no AA)"})
+    supersample: int = field(
+        default=2, metadata={"help": "colour rays per pixel along each axis (1 = no AA)"}
+    )
     shadows: bool = field(default=True, metadata={"help": "ray-traced shadows from the scene light"})
     exposure_stops: float = field(default=0.5, metadata={"help": "per-view exposure change, +- stops"})
     white_balance: float = field(default=0.08, metadata={"help": "per-view channel gains in 1 +- this"})
     gamma: tuple[float, ...] = field(default=(0.85, 1.2), metadata={"help": "per-view gamma range (lo, hi)"})
     noise_std: tuple[float, ...] = field(
-        default=(0.002, 0.02), metadata={"help": "per-view Gaussian noise std range (lo, hi), image in [0, 1]"}
+        default=(0.002, 0.02),
+        metadata={"help": "per-view Gaussian noise std range (lo, hi), image in [0, 1]"},
     )
-    blur_probability: float = field(default=0.3, metadata={"help": "probability of a Gaussian (defocus) blur"})
+    blur_probability: float = field(
+        default=0.3, metadata={"help": "probability of a Gaussian (defocus) blur"}
+    )
     blur_sigma: tuple[float, ...] = field(default=(0.3, 1.0), metadata={"help": "blur sigma range in pixels"})
-    motion_blur_probability: float = field(default=0.15, metadata={"help": "probability of a linear motion blur"})
+    motion_blur_probability: float = field(
+        default=0.15, metadata={"help": "probability of a linear motion blur"}
+    )
     motion_blur_length: tuple[float, ...] = field(
         default=(2.0, 6.0), metadata={"help": "motion blur length range in pixels"}
     )
@@ -147,19 +154,22 @@ class Renderer:
         ids[~hit] = -1
         return t, ids, out["primitive_uvs"].numpy().astype(np.float64)
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float = np.inf,
-                 tnear: float = 0.0) -> np.ndarray:
+    def occluded(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float = np.inf, tnear: float = 0.0
+    ) -> np.ndarray:
         """``[N]`` bool: does ray ``origin + t * direction`` hit anything for ``t`` in ``[tnear, tfar]``."""
         directions = np.asarray(directions, np.float32).reshape(-1, 3)
         origins = np.broadcast_to(np.asarray(origins, np.float32), directions.shape)
         rays = np.ascontiguousarray(np.concatenate([origins, directions], 1), np.float32)
-        occ = self._rc.test_occlusions(self._o3d.core.Tensor(rays), tnear=float(tnear), tfar=float(tfar),
-                                       nthreads=self.nthreads)
+        occ = self._rc.test_occlusions(
+            self._o3d.core.Tensor(rays), tnear=float(tnear), tfar=float(tfar), nthreads=self.nthreads
+        )
         return occ.numpy().astype(bool)
 
     @staticmethod
-    def pixel_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
-                   supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_rays(
+        K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, supersample: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Camera centre ``[3]`` and world ray directions ``[H * s, W * s, 3]`` (camera z = 1).
 
         With ``s = supersample`` the rays of pixel ``(col, row)`` pass through
@@ -177,23 +187,48 @@ class Renderer:
 
     # ------------------------------------------------------------------ rendering
 
-    def render_depth(self, K: np.ndarray, cam_from_world: np.ndarray, height: int,
-                     width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Geometry only: ``(depth [H, W] float32, normals [H, W, 3] float32, triangle_ids [H, W] int64)``."""
+    def _centre_cast(
+        self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel-centre rays: ``(centre [3], dirs [H*W, 3], t [H*W], ids [H*W], barycentric [H*W, 2])``."""
         _, R, _ = _check_camera(K, cam_from_world)
         centre, dirs = self.pixel_rays(K, cam_from_world, height, width)
-        t, ids, _ = self.cast(centre, dirs.reshape(-1, 3))
-        t, ids = self._fill_cracks(centre, dirs, t, ids, K, R, height, width)
+        dirs = dirs.reshape(-1, 3)
+        t, ids, bary = self.cast(centre, dirs)
+        t, ids, bary = self._fill_cracks(centre, dirs, t, ids, bary, K, R, height, width)
+        return centre, dirs, t, ids, bary
+
+    def _geometry(
+        self, R: np.ndarray, dirs: np.ndarray, t: np.ndarray, ids: np.ndarray, height: int, width: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         hit = ids >= 0
         depth = np.where(hit, t, 0.0).reshape(height, width).astype(np.float32)
         n = self._tri_normals[np.maximum(ids, 0)]
-        flip = np.einsum("ij,ij->i", n, dirs.reshape(-1, 3)) > 0
+        flip = np.einsum("ij,ij->i", n, dirs) > 0
         n = np.where(flip[:, None], -n, n)
         n_cam = (n @ R.T) * hit[:, None]
         return depth, n_cam.reshape(height, width, 3).astype(np.float32), ids.reshape(height, width)
 
-    def _fill_cracks(self, centre: np.ndarray, dirs: np.ndarray, t: np.ndarray, ids: np.ndarray, K: np.ndarray,
-                     R: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    def render_depth(
+        self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Geometry only: ``(depth [H, W] float32, normals [H, W, 3] float32, triangle_ids [H, W] int64)``."""
+        _, R, _ = _check_camera(K, cam_from_world)
+        _, dirs, t, ids, _ = self._centre_cast(K, cam_from_world, height, width)
+        return self._geometry(R, dirs, t, ids, height, width)
+
+    def _fill_cracks(
+        self,
+        centre: np.ndarray,
+        dirs: np.ndarray,
+        t: np.ndarray,
+        ids: np.ndarray,
+        bary: np.ndarray,
+        K: np.ndarray,
+        R: np.ndarray,
+        height: int,
+        width: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-cast isolated misses (a ray slipping between two triangles that share an edge).
 
         A miss whose four neighbours all hit is re-cast with the ray moved by 0.02, then 0.1 pixel
@@ -201,26 +236,34 @@ class Renderer:
         """
         miss = (ids < 0).reshape(height, width)
         if not miss.any() or height < 3 or width < 3:
-            return t, ids
+            return t, ids, bary
         hit = ~miss
         inner = np.zeros_like(miss)
         inner[1:-1, 1:-1] = miss[1:-1, 1:-1] & hit[:-2, 1:-1] & hit[2:, 1:-1] & hit[1:-1, :-2] & hit[1:-1, 2:]
         sel = np.flatnonzero(inner)
         if sel.size == 0:
-            return t, ids
-        t, ids = t.copy(), ids.copy()
+            return t, ids, bary
+        t, ids, bary = t.copy(), ids.copy(), bary.copy()
         for du, dv in ((0.02, 0.02), (-0.02, -0.02), (0.1, -0.1), (-0.1, 0.1)):
             shift = R.T @ np.array([du / K[0, 0], dv / K[1, 1], 0.0])
-            t2, ids2, _ = self.cast(centre, dirs.reshape(-1, 3)[sel] + shift)
+            t2, ids2, bary2 = self.cast(centre, dirs[sel] + shift)
             ok = ids2 >= 0
-            t[sel[ok]], ids[sel[ok]] = t2[ok], ids2[ok]
+            t[sel[ok]], ids[sel[ok]], bary[sel[ok]] = t2[ok], ids2[ok], bary2[ok]
             sel = sel[~ok]
             if sel.size == 0:
                 break
-        return t, ids
+        return t, ids, bary
 
-    def _shade(self, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, ids: np.ndarray, bary: np.ndarray,
-               focal: float, shadows: bool) -> np.ndarray:
+    def _shade(
+        self,
+        origin: np.ndarray,
+        dirs: np.ndarray,
+        t: np.ndarray,
+        ids: np.ndarray,
+        bary: np.ndarray,
+        focal: float,
+        shadows: bool,
+    ) -> np.ndarray:
         """Colours ``[N, 3]`` of ray hits (background where ``ids < 0``)."""
         sc = self.scene
         out = np.empty((ids.shape[0], 3), np.float32)
@@ -267,22 +310,67 @@ class Renderer:
         out[hit] = albedo * shade[:, None]
         return out
 
-    def render(self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
-               supersample: int = 1, shadows: bool = True) -> RenderedView:
-        """Render colour (before photometric changes), depth and normals of one view."""
-        K, _, _ = _check_camera(K, cam_from_world)
-        depth, normals, ids = self.render_depth(K, cam_from_world, height, width)
+    def _edge_pixels(self, normals: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """``[H, W]`` bool: pixels next to a silhouette, crease or material edge (they get supersampled).
+
+        Neighbouring pixels differ when they hit different surface patches or textures, only one of
+        them hits, or their normals differ by more than about 25 degrees (tessellation does not count).
+        """
+        sc = self.scene
+        safe = np.maximum(ids, 0)
+        part = np.where(ids >= 0, sc.triangle_part[safe], -1)
+        tex = np.where(ids >= 0, sc.triangle_texture[safe], -1)
+        edge = np.zeros(ids.shape, bool)
+        for axis in (0, 1):
+            sl_a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+            sl_b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+            crease = np.einsum("ijk,ijk->ij", normals[sl_a], normals[sl_b]) < 0.9
+            diff = crease | (part[sl_a] != part[sl_b]) | (tex[sl_a] != tex[sl_b])
+            edge[sl_a] |= diff
+            edge[sl_b] |= diff
+        return edge
+
+    def render(
+        self,
+        K: np.ndarray,
+        cam_from_world: np.ndarray,
+        height: int,
+        width: int,
+        supersample: int = 1,
+        shadows: bool = True,
+    ) -> RenderedView:
+        """Render colour (before photometric changes), depth and normals of one view.
+
+        With ``supersample = s > 1``, pixels next to silhouettes, creases or material edges get ``s x s``
+        colour rays (box filtered); the other pixels, where a single ray is exact up to the
+        mip-mapped texture, keep their centre ray.
+        """
+        K, R, _ = _check_camera(K, cam_from_world)
+        centre, dirs, t, ids, bary = self._centre_cast(K, cam_from_world, height, width)
+        depth, normals, id_map = self._geometry(R, dirs, t, ids, height, width)
+        focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+        col = self._shade(centre, dirs, t, ids, bary, focal, shadows)
         s = int(supersample)
-        centre, dirs = self.pixel_rays(K, cam_from_world, height, width, s)
-        dirs = dirs.reshape(-1, 3)
-        t, tri, bary = self.cast(centre, dirs)
-        focal = float(np.sqrt(K[0, 0] * K[1, 1])) * s
-        col = self._shade(centre, dirs, t, tri, bary, focal, shadows)
-        col = col.reshape(height, s, width, s, 3).mean(axis=(1, 3)) if s > 1 else col.reshape(height, width, 3)
-        return RenderedView(image=col.astype(np.float32), depth=depth, normals=normals, triangle_ids=ids)
+        if s > 1:
+            edge = np.flatnonzero(self._edge_pixels(normals, id_map))
+            if edge.size:
+                row, colm = np.divmod(edge, width)
+                off = (np.arange(s) + 0.5) / s
+                ou, ov = np.meshgrid(off, off)
+                u = (colm[:, None] + ou.reshape(1, -1)).reshape(-1)
+                v = (row[:, None] + ov.reshape(1, -1)).reshape(-1)
+                d_cam = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+                d_sub = (d_cam / d_cam[:, 2:3]) @ R
+                t2, ids2, bary2 = self.cast(centre, d_sub)
+                sub = self._shade(centre, d_sub, t2, ids2, bary2, focal * s, shadows)
+                col[edge] = sub.reshape(edge.size, s * s, 3).mean(1)
+        image = col.reshape(height, width, 3).astype(np.float32)
+        return RenderedView(image=image, depth=depth, normals=normals, triangle_ids=id_map)
 
     def segments_clear(self, starts: np.ndarray, ends: np.ndarray, rel_tol: float = 1e-3) -> np.ndarray:
-        """``[N]`` bool: is the segment from ``starts[i]`` (a camera centre) to ``ends[i]`` (a surface point) free.
+        """``[N]`` bool: is the segment from ``starts[i]`` (a camera centre) to ``ends[i]`` free.
+
+        ``ends`` are points on a surface.
 
         Hits within ``rel_tol`` (relative to the segment length) of the end count as the end point itself.
         """
@@ -315,8 +403,12 @@ def _motion_kernel(length: float, angle: float) -> np.ndarray:
         x, y = c + s * dx, c + s * dy
         x0, y0 = int(np.floor(x)), int(np.floor(y))
         fx, fy = x - x0, y - y0
-        for xi, yi, w in ((x0, y0, (1 - fx) * (1 - fy)), (x0 + 1, y0, fx * (1 - fy)),
-                          (x0, y0 + 1, (1 - fx) * fy), (x0 + 1, y0 + 1, fx * fy)):
+        for xi, yi, w in (
+            (x0, y0, (1 - fx) * (1 - fy)),
+            (x0 + 1, y0, fx * (1 - fy)),
+            (x0, y0 + 1, (1 - fx) * fy),
+            (x0 + 1, y0 + 1, fx * fy),
+        ):
             if 0 <= xi < size and 0 <= yi < size:
                 k[yi, xi] += w
     return k / k.sum()

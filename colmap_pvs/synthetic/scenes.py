@@ -49,7 +49,9 @@ class SceneConfig:
     )
     low_texture_fraction: float = field(
         default=0.15,
-        metadata={"help": "probability that a surface gets a deliberately low-texture (near-uniform) material"},
+        metadata={
+            "help": "probability that a surface gets a deliberately low-texture (near-uniform) material"
+        },
     )
     texture_scale: tuple[float, ...] = field(
         default=(0.15, 1.0),
@@ -140,6 +142,7 @@ class Scene:
         uvs: ``[V, 2]`` float32 texture coordinates in tiles.
         triangle_texture: ``[F]`` int32 index into ``textures``.
         triangle_density: ``[F]`` float32 texture tiles per scene unit (for mip selection).
+        triangle_part: ``[F]`` int32 id of the surface patch (box face, sphere...) each triangle belongs to.
         textures: ``[T, S, S, 3]`` float32 albedo in [0, 1].
         texture_kinds: ``T`` kind names (see :data:`.textures.TEXTURE_KINDS`).
         background: ``[3]`` colour of pixels that hit nothing.
@@ -158,6 +161,7 @@ class Scene:
     uvs: np.ndarray
     triangle_texture: np.ndarray
     triangle_density: np.ndarray
+    triangle_part: np.ndarray
     textures: np.ndarray
     texture_kinds: tuple[str, ...]
     background: np.ndarray
@@ -246,8 +250,15 @@ class _Builder:
         h = cv2.resize(grid, (nv, nu), interpolation=cv2.INTER_CUBIC).astype(np.float64)
         return h * amplitude * self.config.bumpiness
 
-    def finish(self, family: str, seed: int, light: Light, roi_center: np.ndarray, roi_radius: float,
-               view_space: ViewSpace) -> Scene:
+    def finish(
+        self,
+        family: str,
+        seed: int,
+        light: Light,
+        roi_center: np.ndarray,
+        roi_radius: float,
+        view_space: ViewSpace,
+    ) -> Scene:
         arrays = self.mesh.arrays()
         bg = np.clip(self.rng.uniform(0.05, 0.6) * np.ones(3) + self.rng.normal(0, 0.05, 3), 0, 1)
         return Scene(
@@ -258,6 +269,7 @@ class _Builder:
             uvs=arrays["uvs"],
             triangle_texture=arrays["triangle_texture"],
             triangle_density=arrays["triangle_density"],
+            triangle_part=arrays["triangle_part"],
             textures=np.stack(self.textures).astype(np.float32),
             texture_kinds=tuple(self.kinds),
             background=bg.astype(np.float32),
@@ -270,9 +282,11 @@ class _Builder:
         )
 
 
-def _place_discs(rng: np.random.Generator, radii: np.ndarray, bounds: np.ndarray,
-                 tries: int = 200) -> list[tuple[int, np.ndarray]]:
-    """Non-overlapping disc centres inside ``bounds`` ``[2, 2]`` (xy min/max); discs that don't fit are dropped."""
+def _place_discs(
+    rng: np.random.Generator, radii: np.ndarray, bounds: np.ndarray, tries: int = 200
+) -> list[tuple[int, np.ndarray]]:
+    """Non-overlapping disc centres inside ``bounds`` ``[2, 2]`` (xy min/max); discs that don't fit are
+    dropped."""
     placed: list[tuple[int, np.ndarray]] = []
     for i, r in enumerate(radii):
         lo, hi = bounds[0] + r, bounds[1] - r
@@ -290,8 +304,12 @@ def _directional_light(rng: np.random.Generator, az_deg: float | None = None) ->
     az = np.radians(rng.uniform(0, 360) if az_deg is None else az_deg)
     el = np.radians(rng.uniform(30, 75))
     to_light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    return Light("directional", tuple(float(x) for x in -to_light), float(rng.uniform(0.55, 0.9)),
-                 float(rng.uniform(0.25, 0.45)))
+    return Light(
+        "directional",
+        tuple(float(x) for x in -to_light),
+        float(rng.uniform(0.55, 0.9)),
+        float(rng.uniform(0.25, 0.45)),
+    )
 
 
 # --------------------------------------------------------------------------- families
@@ -307,7 +325,9 @@ def _add_object(b: _Builder, kind: str, xy: np.ndarray, r: float, z0: float) -> 
         b.mesh.add_box([xy[0], xy[1], z0 + h / 2], [w, d, h], rng.uniform(0, np.pi), m)
         if rng.random() < 0.3:  # a smaller box on top
             s = rng.uniform(0.3, 0.6) * r
-            b.mesh.add_box([xy[0], xy[1], z0 + h + s / 2], [s, s, s], rng.uniform(0, np.pi), b.material(scale=0.5))
+            b.mesh.add_box(
+                [xy[0], xy[1], z0 + h + s / 2], [s, s, s], rng.uniform(0, np.pi), b.material(scale=0.5)
+            )
             h += s
     elif kind == "sphere":
         h = 2 * r
@@ -335,11 +355,17 @@ def _object_scene(b: _Builder, seed: int) -> Scene:
         leg_m = b.material(kind="low")
         for sx in (-1, 1):
             for sy in (-1, 1):
-                b.mesh.add_cylinder([sx * (tw / 2 - 0.06), sy * (td / 2 - 0.06), floor_z], 0.02, 0.02, leg_h,
-                                    leg_m, None, 12)
+                b.mesh.add_cylinder(
+                    [sx * (tw / 2 - 0.06), sy * (td / 2 - 0.06), floor_z], 0.02, 0.02, leg_h, leg_m, None, 12
+                )
     fs = 10.0
-    b.mesh.add_heightfield([-fs / 2, -fs / 2, floor_z], [fs, 0, 0], [0, fs, 0],
-                           b.smooth_heights(24, 24, 0.01), b.material(scale=3.0))
+    b.mesh.add_heightfield(
+        [-fs / 2, -fs / 2, floor_z],
+        [fs, 0, 0],
+        [0, fs, 0],
+        b.smooth_heights(24, 24, 0.01),
+        b.material(scale=3.0),
+    )
     for _ in range(int(rng.integers(0, 3))):  # backdrop walls
         az = rng.uniform(0, 2 * np.pi)
         dist = rng.uniform(2.0, 3.5)
@@ -371,9 +397,12 @@ def _object_scene(b: _Builder, seed: int) -> Scene:
     roi_r = float(np.clip(extent, 0.15, 0.5))
     d0 = b.nominal_distance
     vs = ViewSpace(
-        az_center_deg=0.0, az_range_deg=180.0, el_range_deg=(12.0, 70.0),
+        az_center_deg=0.0,
+        az_range_deg=180.0,
+        el_range_deg=(12.0, 70.0),
         dist_range=(0.6 * d0, 1.4 * d0),
-        eye_box=np.array([[-6.0, -6.0, floor_z + 0.1], [6.0, 6.0, 3.0]]), margin=0.05,
+        eye_box=np.array([[-6.0, -6.0, floor_z + 0.1], [6.0, 6.0, 3.0]]),
+        margin=0.05,
     )
     return b.finish("object", seed, _directional_light(rng), c, roi_r, vs)
 
@@ -393,16 +422,23 @@ def _room_scene(b: _Builder, seed: int) -> Scene:
     for o, u, v in walls:
         tex = wall_tex if rng.random() < 0.7 else None
         nu = max(2, int(np.linalg.norm(u) * 4))
-        b.mesh.add_heightfield(o, u, v, b.smooth_heights(nu, 12, 0.005 * rng.random()), b.material(texture=tex,
-                                                                                              scale=2.0))
+        b.mesh.add_heightfield(
+            o, u, v, b.smooth_heights(nu, 12, 0.005 * rng.random()), b.material(texture=tex, scale=2.0)
+        )
         if rng.random() < 0.6:  # a poster / panel on the wall
             un, vn = np.asarray(u, float) / np.linalg.norm(u), np.asarray(v, float) / np.linalg.norm(v)
             n = np.cross(un, vn)
             pw, ph = rng.uniform(0.5, 1.5), rng.uniform(0.4, 1.0)
-            po = np.asarray(o, float) + un * rng.uniform(0.2, np.linalg.norm(u) - pw - 0.2) + vn * rng.uniform(1.0, H - ph - 0.3)
+            po = (
+                np.asarray(o, float)
+                + un * rng.uniform(0.2, np.linalg.norm(u) - pw - 0.2)
+                + vn * rng.uniform(1.0, H - ph - 0.3)
+            )
             b.mesh.add_quad(po + n * 0.01, un * pw, vn * ph, b.material(kind="photo", scale=0.5))
     b.mesh.add_heightfield([x0, y0, 0], [W, 0, 0], [0, L, 0], np.zeros((2, 2)), b.material(scale=1.5))
-    b.mesh.add_heightfield([x0, y0, H], [0, L, 0], [W, 0, 0], np.zeros((2, 2)), b.material(kind="low", scale=2.0))
+    b.mesh.add_heightfield(
+        [x0, y0, H], [0, L, 0], [W, 0, 0], np.zeros((2, 2)), b.material(kind="low", scale=2.0)
+    )
 
     n_items = int(rng.integers(cfg.min_objects, cfg.max_objects + 1)) + 1
     kinds = ("table", "chair", "shelf", "cabinet", "sofa", "lamp", "ball", "boxes")
@@ -434,15 +470,25 @@ def _room_scene(b: _Builder, seed: int) -> Scene:
                 b.occluders.append(np.r_[xy, top_h])
             else:
                 for _ in range(int(rng.integers(0, 3))):  # things on the table
-                    p = np.r_[xy, 0.0] + R @ np.r_[rng.uniform(-sx / 3, sx / 3), rng.uniform(-sy / 3, sy / 3), 0]
-                    _add_object(b, ("box", "sphere", "cylinder")[int(rng.integers(3))], p[:2],
-                                rng.uniform(0.05, 0.12), top_h + 0.02)
+                    p = (
+                        np.r_[xy, 0.0]
+                        + R @ np.r_[rng.uniform(-sx / 3, sx / 3), rng.uniform(-sy / 3, sy / 3), 0]
+                    )
+                    _add_object(
+                        b,
+                        ("box", "sphere", "cylinder")[int(rng.integers(3))],
+                        p[:2],
+                        rng.uniform(0.05, 0.12),
+                        top_h + 0.02,
+                    )
         elif kind in ("shelf", "cabinet", "boxes"):
             h = rng.uniform(0.6, 2.0) if kind != "boxes" else rng.uniform(0.3, 0.6)
             b.mesh.add_box([xy[0], xy[1], h / 2], [r * 1.3, r * 0.8, h], yaw, b.material(scale=1.0))
             if kind == "boxes":
                 s = rng.uniform(0.2, 0.4)
-                b.mesh.add_box([xy[0], xy[1], h + s / 2], [s, s, s], yaw + rng.uniform(-0.5, 0.5), b.material())
+                b.mesh.add_box(
+                    [xy[0], xy[1], h + s / 2], [s, s, s], yaw + rng.uniform(-0.5, 0.5), b.material()
+                )
             b.occluders.append(np.r_[xy, h * 0.6])
         elif kind == "sofa":
             m = b.material(scale=0.8)
@@ -458,8 +504,13 @@ def _room_scene(b: _Builder, seed: int) -> Scene:
             b.occluders.append(np.r_[xy, h * 0.5])
         else:  # ball / blob
             rr = rng.uniform(0.1, 0.3)
-            b.mesh.add_sphere([xy[0], xy[1], rr], rr, b.material(scale=0.5), cfg.segments,
-                              bumps=b.bumps(0.15) if rng.random() < 0.5 else None)
+            b.mesh.add_sphere(
+                [xy[0], xy[1], rr],
+                rr,
+                b.material(scale=0.5),
+                cfg.segments,
+                bumps=b.bumps(0.15) if rng.random() < 0.5 else None,
+            )
         lo, hi = b.last_aabb(len(b.mesh.aabbs) - n_before)
         b.solid(lo, hi)
         centres.append((lo + hi) / 2)
@@ -470,14 +521,25 @@ def _room_scene(b: _Builder, seed: int) -> Scene:
         c = np.array([rng.uniform(x0 + 1, x0 + W - 1), y0 + L - 0.3, 1.2])
     roi_r = float(rng.uniform(0.7, 1.3))
     vs = ViewSpace(
-        az_center_deg=0.0, az_range_deg=180.0, el_range_deg=(-10.0, 45.0),
+        az_center_deg=0.0,
+        az_range_deg=180.0,
+        el_range_deg=(-10.0, 45.0),
         dist_range=(0.8 * b.nominal_distance, 1.6 * b.nominal_distance),
-        eye_box=np.array([[x0 + 0.25, y0 + 0.25, 0.4], [x0 + W - 0.25, y0 + L - 0.25, H - 0.3]]), margin=0.15,
+        eye_box=np.array([[x0 + 0.25, y0 + 0.25, 0.4], [x0 + W - 0.25, y0 + L - 0.25, H - 0.3]]),
+        margin=0.15,
     )
-    light_pos = (float(rng.uniform(x0 + 0.5, x0 + W - 0.5)), float(rng.uniform(y0 + 0.5, y0 + L - 0.5)),
-                 float(H - 0.3))
-    light = Light("point", light_pos, float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.3, 0.5)),
-                  falloff=float(rng.uniform(2.5, 5.0)))
+    light_pos = (
+        float(rng.uniform(x0 + 0.5, x0 + W - 0.5)),
+        float(rng.uniform(y0 + 0.5, y0 + L - 0.5)),
+        float(H - 0.3),
+    )
+    light = Light(
+        "point",
+        light_pos,
+        float(rng.uniform(0.6, 1.0)),
+        float(rng.uniform(0.3, 0.5)),
+        falloff=float(rng.uniform(2.5, 5.0)),
+    )
     return b.finish("room", seed, light, c, roi_r, vs)
 
 
@@ -490,7 +552,7 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
     zs = np.linspace(0, Hf, nv)[None, :]
     relief = b.smooth_heights(nu, nv, 0.01, cells=12)  # displacement along -y (towards the street)
     wall_m = b.material(scale=1.5)
-    glass_tex, frame_tex = b.texture(), b.texture()
+    glass_tex = b.texture()
     cell_tex = np.full((nu - 1, nv - 1), wall_m.texture, np.int32)
     floors = max(2, int(Hf / rng.uniform(2.8, 3.5)))
     cols = max(2, int(Wf / rng.uniform(1.8, 3.0)))
@@ -519,11 +581,18 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
         if rng.random() < 0.7:
             w2, h2, dy = rng.uniform(5, 10), rng.uniform(5, 14), rng.uniform(-1.5, 3.0)
             xstart = side * Wf / 2 if side > 0 else -Wf / 2 - w2
-            b.mesh.add_heightfield([xstart, dy, 0], [w2, 0, 0], [0, 0, h2], b.smooth_heights(int(w2 * 4), int(h2 * 4),
-                                   0.03), b.material(scale=1.5))
+            b.mesh.add_heightfield(
+                [xstart, dy, 0],
+                [w2, 0, 0],
+                [0, 0, h2],
+                b.smooth_heights(int(w2 * 4), int(h2 * 4), 0.03),
+                b.material(scale=1.5),
+            )
             if abs(dy) > 0.05:  # the side wall that joins the two facades
                 xj = side * Wf / 2
-                b.mesh.add_quad([xj, min(0.0, dy), 0], [0, abs(dy), 0], [0, 0, min(h2, Hf)], b.material(scale=1.5))
+                b.mesh.add_quad(
+                    [xj, min(0.0, dy), 0], [0, abs(dy), 0], [0, 0, min(h2, Hf)], b.material(scale=1.5)
+                )
             b.solid([xstart, dy, 0.0], [xstart + w2, dy + 5.0, h2])
     # protruding boxes: balconies and pilasters
     for f in range(1, floors):
@@ -543,10 +612,13 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
     for x in np.linspace(-Wf / 2, Wf / 2, cols + 1)[1:-1]:
         if rng.random() < 0.3:
             pw, pd = rng.uniform(0.2, 0.5), rng.uniform(0.1, 0.3)
-            b.mesh.add_box([x, -pd / 2 + 0.01, Hf / 2], [pw, pd, Hf], 0.0, b.material(scale=1.0), skip_bottom=True)
+            b.mesh.add_box(
+                [x, -pd / 2 + 0.01, Hf / 2], [pw, pd, Hf], 0.0, b.material(scale=1.0), skip_bottom=True
+            )
     # street
-    b.mesh.add_heightfield([-30, -25, 0], [60, 0, 0], [0, 27, 0], b.smooth_heights(30, 20, 0.02),
-                           b.material(scale=3.0))
+    b.mesh.add_heightfield(
+        [-30, -25, 0], [60, 0, 0], [0, 27, 0], b.smooth_heights(30, 20, 0.02), b.material(scale=3.0)
+    )
     # street furniture (occluders)
     n_items = int(rng.integers(cfg.min_objects, cfg.max_objects + 1))
     for _ in range(n_items):
@@ -566,7 +638,9 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
             h = rng.uniform(2.0, 3.5)
             rc = rng.uniform(0.8, 1.5)
             b.mesh.add_cylinder([x, y, 0], 0.12, 0.1, h, b.material(scale=0.3), None, 12)
-            b.mesh.add_sphere([x, y, h + rc * 0.7], rc, b.material(scale=0.3), cfg.segments, bumps=b.bumps(0.3))
+            b.mesh.add_sphere(
+                [x, y, h + rc * 0.7], rc, b.material(scale=0.3), cfg.segments, bumps=b.bumps(0.3)
+            )
             occ = np.array([x, y, h + rc * 0.5])
         else:
             yaw = rng.uniform(-0.2, 0.2)
@@ -579,9 +653,12 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
     roi_r = float(rng.uniform(2.0, 3.5))
     c = np.array([rng.uniform(-Wf / 3, Wf / 3), 0.0, rng.uniform(min(2.5, Hf / 2), min(Hf - 1.5, 6.0))])
     vs = ViewSpace(
-        az_center_deg=-90.0, az_range_deg=60.0, el_range_deg=(-10.0, 35.0),
+        az_center_deg=-90.0,
+        az_range_deg=60.0,
+        el_range_deg=(-10.0, 35.0),
         dist_range=(0.6 * b.nominal_distance, 1.5 * b.nominal_distance),
-        eye_box=np.array([[-30.0, -24.0, 1.0], [30.0, -0.6, 14.0]]), margin=0.2,
+        eye_box=np.array([[-30.0, -24.0, 1.0], [30.0, -0.6, 14.0]]),
+        margin=0.2,
     )
     light = _directional_light(rng, az_deg=-90 + rng.uniform(-70, 70))
     return b.finish("facade", seed, light, c, roi_r, vs)
@@ -600,14 +677,27 @@ def build_scene(config: SceneConfig, seed: int) -> Scene:
     builder = _Builder(rng, config, nominal)
     make = {"object": _object_scene, "room": _room_scene, "facade": _facade_scene}[family]
     scene = make(builder, int(seed))
-    logger.debug("built %s scene (seed %d): %d triangles, %d textures", family, seed, scene.num_triangles,
-                 scene.textures.shape[0])
+    logger.debug(
+        "built %s scene (seed %d): %d triangles, %d textures",
+        family,
+        seed,
+        scene.num_triangles,
+        scene.textures.shape[0],
+    )
     return scene
 
 
-def scene_from_primitives(builder_fn, *, seed: int = 0, roi_center=(0.0, 0.0, 0.0), roi_radius: float = 1.0,
-                          view_space: ViewSpace | None = None, light: Light | None = None,
-                          config: SceneConfig | None = None, nominal_distance: float = 1.0) -> Scene:
+def scene_from_primitives(
+    builder_fn,
+    *,
+    seed: int = 0,
+    roi_center=(0.0, 0.0, 0.0),
+    roi_radius: float = 1.0,
+    view_space: ViewSpace | None = None,
+    light: Light | None = None,
+    config: SceneConfig | None = None,
+    nominal_distance: float = 1.0,
+) -> Scene:
     """A custom scene: ``builder_fn(mesh: MeshBuilder, material: Callable[..., Material])`` adds primitives.
 
     ``material(kind=None, scale=1.0)`` returns a new random material; used by tests and examples
@@ -617,7 +707,8 @@ def scene_from_primitives(builder_fn, *, seed: int = 0, roi_center=(0.0, 0.0, 0.
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xC057]))
     b = _Builder(rng, config, nominal_distance)
     builder_fn(b.mesh, lambda kind=None, scale=1.0: b.material(kind=kind, scale=scale))
-    vs = view_space or ViewSpace(0.0, 180.0, (-80.0, 80.0), (1.0, 2.0),
-                                 np.array([[-1e3] * 3, [1e3] * 3]), 0.0)
+    vs = view_space or ViewSpace(
+        0.0, 180.0, (-80.0, 80.0), (1.0, 2.0), np.array([[-1e3] * 3, [1e3] * 3]), 0.0
+    )
     light = light or Light("directional", (0.3, 0.4, -0.866), 0.7, 0.35)
     return b.finish("custom", int(seed), light, np.asarray(roi_center, float), roi_radius, vs)

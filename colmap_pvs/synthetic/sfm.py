@@ -43,7 +43,7 @@ class SimulatedPoints:
 
 
 def texture_weights(image: np.ndarray) -> np.ndarray:
-    """``[H, W]`` float64 sampling weights: gradient magnitude of the ``[H, W, 3]`` uint8 image, plus a floor."""
+    """``[H, W]`` float64 sampling weights: gradient magnitude of a ``[H, W, 3]`` uint8 image plus a floor."""
     gray = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float32)
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
@@ -61,10 +61,19 @@ def project(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray) -> tu
     return uv, z
 
 
-def simulate_sparse_points(renderer: Renderer, rig: CameraRig, images: np.ndarray, depths: np.ndarray,
-                           normals: np.ndarray, rng: np.random.Generator, num_points: int = 1500,
-                           min_track: int = 2, max_angle_deg: float = 75.0, noise: float = 5e-4,
-                           texture_weighted: bool = True) -> SimulatedPoints:
+def simulate_sparse_points(
+    renderer: Renderer,
+    rig: CameraRig,
+    images: np.ndarray,
+    depths: np.ndarray,
+    normals: np.ndarray,
+    rng: np.random.Generator,
+    num_points: int = 1500,
+    min_track: int = 2,
+    max_angle_deg: float = 75.0,
+    noise: float = 5e-4,
+    texture_weighted: bool = True,
+) -> SimulatedPoints:
     """Sample surface points and their tracks.
 
     Args:
@@ -108,6 +117,7 @@ def simulate_sparse_points(renderer: Renderer, rig: CameraRig, images: np.ndarra
     if not xyz:
         return SimulatedPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros((0, V), bool))
     xyz_a, nrm_a, rgb_a, src_a = (np.concatenate(a) for a in (xyz, nrm, rgb, src))
+    n_sampled = src_a.size
     centers = rig.centers
     vis = np.zeros((xyz_a.shape[0], V), bool)
     cos_max = np.cos(np.radians(max_angle_deg))
@@ -128,15 +138,34 @@ def simulate_sparse_points(renderer: Renderer, rig: CameraRig, images: np.ndarra
     if noise > 0 and xyz_a.shape[0]:
         dist = np.linalg.norm(xyz_a - centers[src_a], axis=1)
         xyz_a = xyz_a + rng.normal(0, 1, xyz_a.shape) * (noise * dist)[:, None]
-    logger.debug("simulated %d sparse points (of %d sampled), mean track %.2f", xyz_a.shape[0], keep.size,
-                 float(vis.sum(1).mean()) if vis.size else 0.0)
+        for v in range(V):  # the noise may push an observation out of the image: drop it
+            uv, z = project(xyz_a, rig.K[v], rig.cam_from_world[v])
+            vis[:, v] &= (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        keep = vis.sum(1) >= min_track
+        xyz_a, rgb_a, vis = xyz_a[keep], rgb_a[keep], vis[keep]
+    logger.debug(
+        "simulated %d sparse points (of %d sampled), mean track %.2f",
+        xyz_a.shape[0],
+        n_sampled,
+        float(vis.sum(1).mean()) if vis.size else 0.0,
+    )
     return SimulatedPoints(xyz=xyz_a, rgb=rgb_a.astype(np.uint8), visibility=vis)
 
 
-def build_sparse_model(rig_K: np.ndarray, rig_poses: np.ndarray, width: int, height: int, names: Sequence[str],
-                       xyz: np.ndarray, rgb: np.ndarray, visibility: np.ndarray,
-                       errors: np.ndarray | None = None) -> SparseModel:
-    """A :class:`~colmap_pvs.types.SparseModel`: one PINHOLE camera per image (ids ``1..V``), point ids ``1..P``.
+def build_sparse_model(
+    rig_K: np.ndarray,
+    rig_poses: np.ndarray,
+    width: int,
+    height: int,
+    names: Sequence[str],
+    xyz: np.ndarray,
+    rgb: np.ndarray,
+    visibility: np.ndarray,
+    errors: np.ndarray | None = None,
+) -> SparseModel:
+    """A :class:`~colmap_pvs.types.SparseModel`: one PINHOLE camera per image (ids ``1..V``).
+
+    Image ``v`` has image and camera id ``v + 1``; point ids are ``1..P``.
 
     Args:
         rig_K: ``[V, 3, 3]`` intrinsics; rig_poses: ``[V, 3, 4]`` ``cam_from_world``.
@@ -157,8 +186,9 @@ def build_sparse_model(rig_K: np.ndarray, rig_poses: np.ndarray, width: int, hei
         K = np.asarray(rig_K[v], np.float64)
         params = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
         cameras[v + 1] = Camera(v + 1, "PINHOLE", int(width), int(height), K, params)
-        images[v + 1] = Image(v + 1, str(names[v]), v + 1, np.asarray(rig_poses[v], np.float64),
-                              point_ids[visibility[:, v]])
+        images[v + 1] = Image(
+            v + 1, str(names[v]), v + 1, np.asarray(rig_poses[v], np.float64), point_ids[visibility[:, v]]
+        )
     _, cols = np.nonzero(visibility)  # row-major: sorted by point, then image
     offsets = np.zeros(P + 1, np.int64)
     np.cumsum(visibility.sum(1), out=offsets[1:])
@@ -170,5 +200,9 @@ def build_sparse_model(rig_K: np.ndarray, rig_poses: np.ndarray, width: int, hei
         track_offsets=offsets,
         track_image_ids=(cols + 1).astype(np.int64),
     )
-    return SparseModel(cameras=cameras, images=images, points=points,
-                       image_ids_by_name={str(n): v + 1 for v, n in enumerate(names)})
+    return SparseModel(
+        cameras=cameras,
+        images=images,
+        points=points,
+        image_ids_by_name={str(n): v + 1 for v, n in enumerate(names)},
+    )

@@ -71,9 +71,10 @@ def photo_textures() -> tuple[np.ndarray, ...]:
 # --------------------------------------------------------------------------- procedural
 
 
-def value_noise(rng: np.random.Generator, size: int, octaves: int = 5, base_cells: int = 4,
-                persistence: float = 0.55) -> np.ndarray:
-    """Multi-octave value noise (smoothly interpolated random lattices), ``[size, size]`` float32 in [0, 1]."""
+def value_noise(
+    rng: np.random.Generator, size: int, octaves: int = 5, base_cells: int = 4, persistence: float = 0.55
+) -> np.ndarray:
+    """Multi-octave value noise (interpolated random lattices): ``[size, size]`` float32 in [0, 1]."""
     out = np.zeros((size, size), np.float32)
     amp, total = 1.0, 0.0
     cells = base_cells
@@ -107,7 +108,9 @@ def _coords(size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray
     """Randomly rotated texel coordinates in tiles, each ``[S, S]``."""
     v, u = np.meshgrid((np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size, indexing="ij")
     a = rng.uniform(0, np.pi)
-    return (np.cos(a) * u + np.sin(a) * v).astype(np.float32), (-np.sin(a) * u + np.cos(a) * v).astype(np.float32)
+    return (np.cos(a) * u + np.sin(a) * v).astype(np.float32), (-np.sin(a) * u + np.cos(a) * v).astype(
+        np.float32
+    )
 
 
 def stripes(rng: np.random.Generator, size: int) -> np.ndarray:
@@ -186,8 +189,11 @@ def _photo(rng: np.random.Generator, size: int) -> np.ndarray:
 
 _MAKERS = {
     "photo": _photo,
-    "noise": lambda rng, size: colorize(value_noise(rng, size, int(rng.integers(4, 8)),
-                                                    int(rng.integers(2, 12))), rng, int(rng.integers(2, 5))),
+    "noise": lambda rng, size: colorize(
+        value_noise(rng, size, int(rng.integers(4, 8)), int(rng.integers(2, 12))),
+        rng,
+        int(rng.integers(2, 5)),
+    ),
     "stripes": stripes,
     "checker": checker,
     "bricks": bricks,
@@ -209,7 +215,8 @@ def make_texture(rng: np.random.Generator, kind: str, size: int = TEXTURE_SIZE) 
 
 
 def random_texture_kind(rng: np.random.Generator, photo_fraction: float, low_texture_fraction: float) -> str:
-    """Draw a kind: ``"low"`` with ``low_texture_fraction``, ``"photo"`` with ``photo_fraction``, else procedural."""
+    """A random kind: ``"low"`` with probability ``low_texture_fraction``, ``"photo"`` with
+    ``photo_fraction``, else a procedural one."""
     r = rng.random()
     if r < low_texture_fraction:
         return "low"
@@ -222,7 +229,10 @@ def random_texture_kind(rng: np.random.Generator, photo_fraction: float, low_tex
 
 
 def build_mipmaps(textures: np.ndarray) -> list[np.ndarray]:
-    """Box-filtered mip pyramid of ``[T, S, S, 3]`` textures: level ``l`` is ``[T, S / 2^l, S / 2^l, 3]``, down to 1x1."""
+    """Box-filtered mip pyramid of ``[T, S, S, 3]`` textures.
+
+    Level ``l`` is ``[T, S / 2^l, S / 2^l, 3]``, down to 1x1.
+    """
     if textures.ndim != 4 or textures.shape[1] != textures.shape[2] or textures.shape[3] != 3:
         raise ShapeError(f"textures must be [T, S, S, 3], got shape {textures.shape}")
     size = textures.shape[1]
@@ -262,8 +272,9 @@ def _bilinear(flat: np.ndarray, size: int, tex: np.ndarray, uv: np.ndarray) -> n
     return top + (bot - top) * fy
 
 
-def sample_textures(mipmaps: list[np.ndarray], texture_ids: np.ndarray, uv: np.ndarray,
-                    texels_per_pixel: np.ndarray) -> np.ndarray:
+def sample_textures(
+    mipmaps: list[np.ndarray], texture_ids: np.ndarray, uv: np.ndarray, texels_per_pixel: np.ndarray
+) -> np.ndarray:
     """Trilinear, mirrored-repeat texture lookup.
 
     Args:

@@ -51,7 +51,9 @@ class SyntheticWorkspaceConfig:
     """
 
     seed: int = field(default=0, metadata={"help": "scene seed"})
-    family: Literal["any", "object", "room", "facade"] = field(default="object", metadata={"help": "scene family"})
+    family: Literal["any", "object", "room", "facade"] = field(
+        default="object", metadata={"help": "scene family"}
+    )
     width: int = field(default=320, metadata={"help": "image width in pixels"})
     height: int = field(default=240, metadata={"help": "image height in pixels"})
     num_views: int = field(default=8, metadata={"help": "number of images"})
@@ -61,7 +63,9 @@ class SyntheticWorkspaceConfig:
     disturbing_fraction: float = field(
         default=0.0, metadata={"help": "fraction of occluded / barely overlapping views"}
     )
-    num_points: int = field(default=3000, metadata={"help": "sparse points sampled (before the track filter)"})
+    num_points: int = field(
+        default=3000, metadata={"help": "sparse points sampled (before the track filter)"}
+    )
     supersample: int = field(default=2, metadata={"help": "colour rays per pixel along each axis"})
     auto_sources: int = field(default=20, metadata={"help": "N of '__auto__, N' in stereo/patch-match.cfg"})
     write_mesh: bool = field(default=True, metadata={"help": "write the scene mesh to gt/mesh.ply"})
@@ -76,13 +80,19 @@ class SyntheticWorkspaceConfig:
         if self.width < 8 or self.height < 8:
             raise ConfigError(f"image size must be at least 8x8, got {self.width}x{self.height}")
         if self.num_points < 1 or self.auto_sources < 1:
-            raise ConfigError(f"num_points and auto_sources must be >= 1, got {self.num_points}, {self.auto_sources}")
+            raise ConfigError(
+                f"num_points and auto_sources must be >= 1, got {self.num_points}, {self.auto_sources}"
+            )
 
     def resolved(self) -> tuple[SceneConfig, CameraConfig, RenderConfig]:
         """The nested configs with the top-level overrides applied."""
         scene = replace_config(self.scene, family=self.family)
-        camera = replace_config(self.camera, num_views=[self.num_views, self.num_views], trajectory=self.trajectory,
-                                disturbing_fraction=self.disturbing_fraction)
+        camera = replace_config(
+            self.camera,
+            num_views=[self.num_views, self.num_views],
+            trajectory=self.trajectory,
+            disturbing_fraction=self.disturbing_fraction,
+        )
         render = replace_config(self.render, supersample=self.supersample)
         return scene, camera, render
 
@@ -99,8 +109,9 @@ def _write_npy(path: Path, array: np.ndarray) -> None:
         np.save(f, array)
 
 
-def make_synthetic_workspace(output_path: str | os.PathLike,
-                             config: SyntheticWorkspaceConfig | None = None) -> dict[str, Any]:
+def make_synthetic_workspace(
+    output_path: str | os.PathLike, config: SyntheticWorkspaceConfig | None = None
+) -> dict[str, Any]:
     """Render one synthetic scene into a COLMAP dense workspace at ``output_path`` (layout: module docstring).
 
     Returns:
@@ -119,16 +130,30 @@ def make_synthetic_workspace(output_path: str | os.PathLike,
         raise WorkspaceError(f"output folder {str(out)!r} already exists (set overwrite to replace it)")
     t0 = time.perf_counter()
     scene_cfg, cam_cfg, ren_cfg = config.resolved()
-    views, scene = render_scene(config.seed, config.width, config.height, scene_cfg, cam_cfg, ren_cfg,
-                               config.num_points, keep_normals=True)
+    views, scene = render_scene(
+        config.seed,
+        config.width,
+        config.height,
+        scene_cfg,
+        cam_cfg,
+        ren_cfg,
+        config.num_points,
+        keep_normals=True,
+    )
     names = views.image_names()
     model = views.sparse_model(names)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
-        for sub in ("images", "stereo/depth_maps", "stereo/normal_maps", "stereo/consistency_graphs",
-                    "gt/depth_maps", "gt/normal_maps"):
+        for sub in (
+            "images",
+            "stereo/depth_maps",
+            "stereo/normal_maps",
+            "stereo/consistency_graphs",
+            "gt/depth_maps",
+            "gt/normal_maps",
+        ):
             (tmp / sub).mkdir(parents=True, exist_ok=True)
         depth_ranges = {}
         for v, name in enumerate(names):
@@ -138,14 +163,18 @@ def make_synthetic_workspace(output_path: str | os.PathLike,
             d = views.depths[v][views.depths[v] > 0]
             depth_ranges[name] = [float(d.min()), float(d.max())] if d.size else [0.0, 0.0]
         write_sparse_model(model, tmp / "sparse")
-        atomic_write_bytes(tmp / "stereo" / "patch-match.cfg",
-                           "".join(f"{n}\n__auto__, {config.auto_sources}\n" for n in names).encode())
+        atomic_write_bytes(
+            tmp / "stereo" / "patch-match.cfg",
+            "".join(f"{n}\n__auto__, {config.auto_sources}\n" for n in names).encode(),
+        )
         write_fusion_cfg(tmp / "stereo" / "fusion.cfg", names)
         if config.write_mesh:
             import open3d as o3d
 
-            mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scene.vertices),
-                                             o3d.utility.Vector3iVector(scene.triangles.astype(np.int32)))
+            mesh = o3d.geometry.TriangleMesh(
+                o3d.utility.Vector3dVector(scene.vertices),
+                o3d.utility.Vector3iVector(scene.triangles.astype(np.int32)),
+            )
             if not o3d.io.write_triangle_mesh(str(tmp / "gt" / "mesh.ply"), mesh, write_ascii=False):
                 raise WorkspaceError(f"could not write {str(tmp / 'gt' / 'mesh.ply')!r}")
         summary: dict[str, Any] = {
@@ -174,8 +203,16 @@ def make_synthetic_workspace(output_path: str | os.PathLike,
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     seconds = time.perf_counter() - t0
-    logger.info("wrote a synthetic %s workspace (%d images %dx%d, %d points) to %s in %.1f s", views.family,
-                len(names), views.width, views.height, len(views.points), out, seconds)
+    logger.info(
+        "wrote a synthetic %s workspace (%d images %dx%d, %d points) to %s in %.1f s",
+        views.family,
+        len(names),
+        views.width,
+        views.height,
+        len(views.points),
+        out,
+        seconds,
+    )
     summary = {k: v for k, v in summary.items() if k != "config"}
     summary["path"] = str(out)
     summary["seconds"] = seconds

@@ -100,6 +100,13 @@ class TrainConfig:
         metadata={"help": "pass the samples' sparse_depth to the model (used when model.sparse_guidance)"},
     )
     seed: int = field(default=0, metadata={"help": "seed of weights init, sample order and all RNGs"})
+    sample_grouping: int = field(
+        default=1,
+        metadata={
+            "help": "sample order: shuffled blocks of this many consecutive indices (synthetic: "
+            "data.samples_per_scene reuses each rendered scene); 1 = fully random"
+        },
+    )
     num_workers: int = field(default=0, metadata={"help": "DataLoader worker processes (0 = main process)"})
     torch_threads: int = field(default=2, metadata={"help": "torch intra-op threads (0 = torch's default)"})
     checkpoint_every_seconds: float = field(
@@ -135,6 +142,7 @@ class TrainConfig:
         need(0.0 <= self.lr_min_factor <= 1.0, f"lr_min_factor must be in [0, 1], got {self.lr_min_factor}")
         need(self.lr_warmup_steps >= 0, f"lr_warmup_steps must be >= 0, got {self.lr_warmup_steps}")
         need(self.grad_clip_norm >= 0, f"grad_clip_norm must be >= 0, got {self.grad_clip_norm}")
+        need(self.sample_grouping >= 1, f"sample_grouping must be >= 1, got {self.sample_grouping}")
         need(self.num_workers >= 0, f"num_workers must be >= 0, got {self.num_workers}")
         need(self.torch_threads >= 0, f"torch_threads must be >= 0, got {self.torch_threads}")
         need(

@@ -22,12 +22,16 @@ A step is one optimizer update; ``step`` counts completed updates. The samples o
 ``s`` are a pure function of ``(seed, s)``: the sample stream is the concatenation of
 per-epoch permutations ``numpy.random.default_rng([seed, epoch]).permutation(len(data))``
 and step ``s`` takes stream positions ``s * batch_size ... (s + 1) * batch_size - 1``
-(:class:`StepSampler`). Datasets must be deterministic functions of the index (both of
-ours are). On start, ``last.pt`` (if ``resume``) restores the weights, optimizer,
-scheduler, the torch/numpy/python RNG states and the log accumulators, so a resumed run
-is identical to an uninterrupted one (same thread count assumed: CPU reductions may
-depend on it). Only the fields in :data:`~colmap_pvs.train.config.RESUMABLE_CHANGES`
-may differ from the checkpoint's config.
+(:class:`StepSampler`). Datasets should be deterministic functions of the index (both
+of ours are); with ``num_workers=0`` a dataset may also draw from the global RNGs, since
+their states are checkpointed (with workers, their seeds come from a generator seeded by
+``seed + step`` at the (re)start, so such a dataset is only reproducible per start).
+Validation saves and restores the RNG states, so it never changes the training run. On
+start, ``last.pt`` (if ``resume``) restores the weights, optimizer, scheduler, the
+torch/numpy/python RNG states and the log accumulators, so a resumed run is identical to
+an uninterrupted one (same thread count assumed: CPU reductions may depend on it). Only
+the fields in :data:`~colmap_pvs.train.config.RESUMABLE_CHANGES` may differ from the
+checkpoint's config.
 """
 
 from __future__ import annotations
@@ -98,20 +102,32 @@ class TrainingInterrupted(KeyboardInterrupt):
 class StepSampler(Sampler[int]):
     """Infinite index stream: concatenated per-epoch permutations seeded by ``(seed, epoch)``.
 
+    With ``group > 1`` an epoch is a random order of the blocks ``[0, group)``,
+    ``[group, 2 group)``, ... each shuffled inside, so consecutive steps stay in one block
+    (for the synthetic data: one rendered scene, reused from the dataset's memory cache).
+
     Args:
         length: dataset size.
         seed: run seed.
         start: first stream position to yield (``step * batch_size`` when resuming).
+        group: block size (1 = a plain permutation).
     """
 
-    def __init__(self, length: int, seed: int, start: int = 0) -> None:
+    def __init__(self, length: int, seed: int, start: int = 0, group: int = 1) -> None:
         if length < 1:
             raise ValueError(f"cannot sample from an empty dataset (length {length})")
-        self.length, self.seed, self.start = int(length), int(seed), int(start)
+        if group < 1:
+            raise ValueError(f"group must be >= 1, got {group}")
+        self.length, self.seed, self.start, self.group = int(length), int(seed), int(start), int(group)
 
     def permutation(self, epoch: int) -> np.ndarray:
         """``[length]`` int64 sample order of ``epoch``."""
-        return np.random.default_rng([self.seed, epoch]).permutation(self.length)
+        rng = np.random.default_rng([self.seed, epoch])
+        if self.group == 1:
+            return rng.permutation(self.length)
+        g, n = self.group, self.length
+        starts = rng.permutation(-(-n // g)) * g
+        return np.concatenate([s + rng.permutation(min(g, n - s)) for s in starts])
 
     def __iter__(self) -> Iterator[int]:
         epoch, offset = divmod(self.start, self.length)
@@ -127,17 +143,22 @@ class StepSampler(Sampler[int]):
 def build_datasets(config: TrainConfig) -> tuple[Dataset, Dataset | None]:
     """``(train, val)`` datasets selected by ``config.dataset`` (``val`` is ``None`` when off).
 
-    Synthetic: ``SyntheticMVSDataset(config.data)``; validation uses
+    Synthetic: ``SyntheticMVSDataset(config.data)``, its rendered scenes cached on disk in
+    ``data.cache_dir`` or, when that is ``None``, in ``output_dir/scene_cache`` (a scene
+    costs seconds to render and is reused by every epoch); validation uses
     ``data.seed + val_seed_offset`` (other scenes). MVSNet: ``config.mvsnet.scans`` and,
     when non-empty, ``config.mvsnet.val_scans``.
     """
     if config.dataset == "synthetic":
         from ..synthetic import SyntheticMVSDataset
 
-        train_ds = SyntheticMVSDataset(config.data)
+        data = config.data
+        if data.cache_dir is None:
+            data = replace_config(data, cache_dir=Path(config.output_dir) / "scene_cache")
+        train_ds = SyntheticMVSDataset(data)
         val_ds = None
         if config.val_every > 0:
-            val_cfg = replace_config(config.data, seed=config.data.seed + config.val_seed_offset)
+            val_cfg = replace_config(data, seed=data.seed + config.val_seed_offset)
             val_ds = SyntheticMVSDataset(val_cfg)
         return train_ds, val_ds
     from .mvsnet_dataset import MVSNetDataset
@@ -320,6 +341,7 @@ class Trainer:
         self.elapsed_s = 0.0
         self._log_accum: dict[str, Any] = {"n": 0, "loss": [], "seconds": 0.0}
         self._stop_signal: str | None = None
+        self.last_lr = float(self.optimizer.param_groups[0]["lr"])  # lr of the latest step
         self.num_outputs = len(config.model.loss_weights)
         self.last_path = self.output_dir / "last.pt"
         self.best_path = self.output_dir / "best.pt"
@@ -458,6 +480,7 @@ class Trainer:
         loss.total.backward()
         if self.config.grad_clip_norm > 0:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip_norm)
+        self.last_lr = float(self.optimizer.param_groups[0]["lr"])
         self.optimizer.step()
         self.scheduler.step()
         self.step += 1
@@ -546,7 +569,7 @@ class Trainer:
             "step": self.step,
             "time_s": round(self.elapsed_s, 3),
             "loss": float(sums[0]),
-            "lr": float(self.optimizer.param_groups[0]["lr"]),
+            "lr": self.last_lr,
             "sec_per_step": acc["seconds"] / acc["n"],
         }
         row.update({f"loss_out{k}": float(sums[k + 1]) for k in range(self.num_outputs)})
@@ -599,7 +622,11 @@ class Trainer:
         self._stop_signal = reason
 
     def _validate_and_keep_best(self) -> None:
-        result = self.validate()
+        rng = _rng_state()  # validation must not perturb the training RNG streams
+        try:
+            result = self.validate()
+        finally:
+            _set_rng_state(rng)
         if result is None:
             return
         self._log_validation(result)
@@ -650,7 +677,9 @@ class Trainer:
         loader = DataLoader(
             self.train_dataset,
             batch_size=cfg.batch_size,
-            sampler=StepSampler(len(self.train_dataset), cfg.seed, self.step * cfg.batch_size),
+            sampler=StepSampler(
+                len(self.train_dataset), cfg.seed, self.step * cfg.batch_size, cfg.sample_grouping
+            ),
             num_workers=cfg.num_workers,
             generator=torch.Generator().manual_seed(cfg.seed + self.step),
         )

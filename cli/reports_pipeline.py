@@ -1,0 +1,86 @@
+"""CLI summaries of the pipeline steps: fuse, mesh, import-poses, reconstruct, demo."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+
+def _num(value: float, fmt: str = ".4f") -> str:
+    return "n/a" if value is None or not math.isfinite(value) else format(value, fmt)
+
+
+def report_fuse(result) -> str:
+    lines = [
+        f"fused cloud: {result.output_path}  ({result.num_points} points from {result.num_images} images, "
+        f"method {result.method}, {result.seconds:.1f} s)",
+        f"visibility:  {result.vis_path}",
+    ]
+    lines += [f"  skipped {name}: {why}" for name, why in result.skipped.items()]
+    return "\n".join(lines)
+
+
+def report_mesh(path: Path) -> str:
+    from colmap_pvs.io.ply import read_mesh
+
+    vertices, faces = read_mesh(path)
+    return f"mesh: {path}  ({len(vertices)} vertices, {len(faces)} faces)"
+
+
+def report_import_poses(path: Path) -> str:
+    import numpy as np
+    import pycolmap
+
+    from colmap_pvs.io.import_poses import reprojection_errors
+
+    rec = pycolmap.Reconstruction(str(path))
+    errs = reprojection_errors(path)
+    median = float(np.median(errs)) if errs.size else float("nan")
+    mean = float(errs.mean()) if errs.size else float("nan")
+    return (
+        f"model: {path}\n"
+        f"images: {rec.num_reg_images()}  cameras: {rec.num_cameras()}  points: {rec.num_points3D()}  "
+        f"observations: {errs.size}\n"
+        f"reprojection error: median {_num(median, '.3f')} px, mean {_num(mean, '.3f')} px "
+        f"(poses and intrinsics held fixed)"
+    )
+
+
+def report_reconstruct(result) -> str:
+    lines = [
+        f"workspace: {result.workspace_path}",
+        f"images registered: {result.num_registered}/{result.num_images}"
+        f"   sparse points: {result.num_points3D}"
+        f"   fused points: {result.num_fused_points}",
+        "time per stage:",
+    ]
+    for stage, seconds in result.stage_seconds.items():
+        note = "  (already done)" if stage in result.resumed else ""
+        lines.append(f"  {stage:<10} {seconds:8.1f} s{note}")
+    lines.append(f"  {'total':<10} {sum(result.stage_seconds.values()):8.1f} s")
+    lines += [
+        f"sparse model: {result.sparse_path}",
+        f"dense workspace: {result.dense_path}",
+        f"fused cloud: {result.fused_path}",
+        f"mesh: {result.mesh_path if result.mesh_path is not None else '(none)'}",
+    ]
+    lines += [f"  stereo skipped {name}: {why}" for name, why in result.stereo_skipped.items()]
+    return "\n".join(lines)
+
+
+def report_demo(result) -> str:
+    lines = [
+        f"demo workspace: {result.workspace}  ({result.num_images} images, checkpoint {result.checkpoint})",
+        f"depth vs GT: AbsRel {_num(result.depth_absrel)}  MAE {_num(result.depth_mae)}  "
+        f"<1%: {_num(result.depth_under_1pct, '.1f')} %  <5%: {_num(result.depth_under_5pct, '.1f')} %  "
+        f"coverage {_num(result.depth_coverage_pct, '.1f')} %",
+        f"fused cloud: {result.fused_path}  ({result.num_fused_points} points; "
+        "median distance to the GT mesh "
+        f"{_num(result.cloud_median_error)} of a scene {_num(result.scene_size, '.2f')} across)",
+        f"mesh: {result.mesh_path if result.mesh_path is not None else '(failed)'}",
+        f"previews: {result.previews}",
+        "time: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in result.stage_seconds.items())
+        + f"; total {result.seconds:.1f} s",
+    ]
+    return "\n".join(lines)

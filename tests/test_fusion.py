@@ -1,0 +1,315 @@
+"""Fusion (``colmap_pvs.fusion``), the PLY / ``.vis`` writers and COLMAP-option validation.
+
+Most tests use the exact analytic workspace of ``tests/scenes.py`` (5 views of 160x120, maps in
+COLMAP's integer-centre convention), so a correct fusion puts every point on the true surface.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.fusion import FuseConfig, fuse, image_indices, parse_colmap_options
+from colmap_pvs.io import read_depth_map, read_sparse_model, write_depth_map, write_normal_map
+from colmap_pvs.io.maps import fusion_intrinsics, write_array
+from colmap_pvs.io.ply import (
+    read_mesh,
+    read_point_cloud,
+    read_visibility,
+    write_point_cloud,
+    write_visibility,
+)
+
+
+@pytest.fixture()
+def workspace(analytic_scene, tmp_path) -> Path:
+    """A private copy of the session's analytic workspace (safe to modify)."""
+    root = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], root)
+    return root
+
+
+def _surface_distance(gt, xyz: np.ndarray) -> np.ndarray:
+    return gt["scene"].distance(np.asarray(xyz, dtype=np.float64))
+
+
+# --------------------------------------------------------------------------- PLY / vis
+
+
+def test_ply_and_vis_roundtrip_and_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(7, 3)).astype(np.float32)
+    nrm = rng.normal(size=(7, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (7, 3)).astype(np.uint8)
+    path = write_point_cloud(tmp_path / "c.ply", xyz, nrm, rgb)
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    assert "format binary_little_endian 1.0" in header
+    props = [ln.split()[-1] for ln in header.splitlines() if ln.startswith("property")]
+    assert props == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    cloud = read_point_cloud(path)
+    np.testing.assert_array_equal(cloud.xyz, xyz)
+    np.testing.assert_array_equal(cloud.normals, nrm)
+    np.testing.assert_array_equal(cloud.colors, rgb)
+
+    offsets = np.array([0, 2, 2, 5])
+    idx = np.array([3, 1, 0, 4, 2])
+    vis = write_visibility(tmp_path / "c.ply.vis", offsets, idx)
+    # COLMAP's WritePointsVisibility: uint64 count, then per point uint32 n + n uint32 indices.
+    expected = struct.pack("<Q", 3) + struct.pack("<7I", 2, 3, 1, 0, 3, 0, 4) + struct.pack("<I", 2)
+    assert vis.read_bytes() == expected
+    got_off, got_idx = read_visibility(vis)
+    np.testing.assert_array_equal(got_off, offsets)
+    np.testing.assert_array_equal(got_idx, idx)
+
+
+def test_ply_read_by_open3d(tmp_path):
+    o3d = pytest.importorskip("open3d")
+    xyz = np.array([[0, 0, 1], [1, 2, 3], [-1, 0.5, 2]], dtype=np.float32)
+    nrm = np.array([[0, 0, 1], [0, 1, 0], [1, 0, 0]], dtype=np.float32)
+    rgb = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255]], dtype=np.uint8)
+    path = write_point_cloud(tmp_path / "c.ply", xyz, nrm, rgb)
+    pcd = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_allclose(np.asarray(pcd.points), xyz)
+    np.testing.assert_allclose(np.asarray(pcd.normals), nrm)
+    np.testing.assert_allclose(np.asarray(pcd.colors), rgb / 255.0)
+
+
+# --------------------------------------------------------------------------- pvs fusion, exact maps
+
+
+def test_exact_maps_fuse_onto_the_true_surface(workspace, analytic_scene):
+    gt = analytic_scene
+    result = fuse(FuseConfig(workspace_path=workspace))
+    assert result.output_path == workspace / "fused.ply"
+    assert result.num_images == 5 and result.num_points > 5000
+    cloud = read_point_cloud(result.output_path)
+    assert len(cloud) == result.num_points
+    dist = _surface_distance(gt, cloud.xyz)
+    size = gt["scene"].size
+    assert np.median(dist) < 1e-5 * size
+    assert np.percentile(dist, 99) < 1e-4 * size
+    # Normals agree with the true surface normals, colours are not black.
+    true_n = gt["scene"].nearest_normal(cloud.xyz.astype(np.float64))
+    assert np.median(np.sum(cloud.normals * true_n, axis=1)) > 0.999
+    assert cloud.colors.astype(int).sum(axis=1).mean() > 100
+    # Visibility: the reference plus at least min_consistent_views sources, valid indices.
+    offsets, idx = read_visibility(result.vis_path)
+    assert len(offsets) - 1 == result.num_points
+    assert np.diff(offsets).min() >= 1 + 2
+    assert idx.min() >= 0 and idx.max() < 5
+
+
+def test_deduplicate_reduces_points_not_accuracy(workspace, analytic_scene):
+    dedup = fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "a.ply"))
+    full = fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "b.ply", deduplicate=False))
+    assert full.num_points > 2 * dedup.num_points
+    dist = _surface_distance(analytic_scene, read_point_cloud(full.output_path).xyz)
+    assert np.median(dist) < 1e-5 * analytic_scene["scene"].size
+
+
+def test_cache_of_one_view_gives_the_same_cloud(workspace):
+    a = fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "a.ply"))
+    b = fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "b.ply", cache_size=1))
+    np.testing.assert_array_equal(read_point_cloud(a.output_path).xyz, read_point_cloud(b.output_path).xyz)
+
+
+def test_corrupted_region_is_rejected(workspace, analytic_scene):
+    """+30 % depth in a block of one view: consistency rejects it; without the check it shows up."""
+    gt = analytic_scene
+    name = gt["names"][2]
+    path = workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+    depth = read_depth_map(path).copy()
+    depth[30:90, 40:120] *= 1.3
+    write_depth_map(path, depth)
+    size = gt["scene"].size
+
+    checked = fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "checked.ply"))
+    dist = _surface_distance(gt, read_point_cloud(checked.output_path).xyz)
+    assert (dist > 0.01 * size).sum() == 0
+
+    unchecked = fuse(
+        FuseConfig(workspace_path=workspace, output_path=workspace / "unchecked.ply", min_consistent_views=0)
+    )
+    dist = _surface_distance(gt, read_point_cloud(unchecked.output_path).xyz)
+    assert (dist > 0.01 * size).sum() > 1000  # the corrupted block (60 x 80 px) is there without the check
+    # The corrupted view contributes far fewer points as a reference than the clean ones.
+    counts = checked.points_per_image
+    assert counts[name] < 0.5 * np.median([counts[n] for n in gt["names"] if n != name])
+
+
+def test_maps_smaller_than_images_use_scaled_intrinsics(workspace, analytic_scene):
+    """Maps at half resolution (inference at --max_image_size) still fuse onto the surface."""
+    from scenes import render_view
+
+    gt = analytic_scene
+    model = gt["model"]
+    for image in model.images.values():
+        cam = model.camera_of(image)
+        K_half = fusion_intrinsics(cam.K, (cam.width, cam.height), (80, 60))
+        maps = render_view(gt["scene"], K_half, image.cam_from_world, 80, 60)
+        write_depth_map(workspace / "stereo" / "depth_maps" / f"{image.name}.geometric.bin", maps["depth"])
+        write_normal_map(
+            workspace / "stereo" / "normal_maps" / f"{image.name}.geometric.bin", maps["normals"]
+        )
+    result = fuse(FuseConfig(workspace_path=workspace))
+    assert result.num_points > 1000
+    dist = _surface_distance(gt, read_point_cloud(result.output_path).xyz)
+    assert np.median(dist) < 1e-5 * gt["scene"].size
+
+
+def test_view_selection_when_no_patch_match_cfg(workspace, analytic_scene):
+    (workspace / "stereo" / "patch-match.cfg").unlink()
+    result = fuse(FuseConfig(workspace_path=workspace, num_sources=2))
+    assert result.num_points > 1000
+    offsets, _ = read_visibility(result.vis_path)
+    assert np.diff(offsets).max() <= 3  # reference + at most 2 sources
+
+
+def test_confidence_maps_filter_pixels(workspace, analytic_scene):
+    for name in analytic_scene["names"]:
+        h, w = read_depth_map(workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").shape
+        write_array(
+            workspace / "stereo" / "confidence_maps" / f"{name}.bin", np.full((h, w), 0.2, np.float32)
+        )
+    assert fuse(FuseConfig(workspace_path=workspace)).num_points > 1000  # min_confidence 0: ignored
+    assert fuse(FuseConfig(workspace_path=workspace, min_confidence=0.5)).num_points == 0
+
+
+def test_missing_maps(workspace, analytic_scene):
+    name = analytic_scene["names"][0]
+    (workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").unlink()
+    result = fuse(FuseConfig(workspace_path=workspace))
+    assert name in result.skipped and result.num_images == 4
+    shutil.rmtree(workspace / "stereo" / "depth_maps")
+    with pytest.raises(WorkspaceError, match="no geometric depth"):
+        fuse(FuseConfig(workspace_path=workspace))
+
+
+# --------------------------------------------------------------------------- COLMAP method / options
+
+
+def test_colmap_option_validation():
+    assert parse_colmap_options(("min_num_pixels=4", "max_reproj_error=1.5", "use_cache=true")) == {
+        "min_num_pixels": 4,
+        "max_reproj_error": 1.5,
+        "use_cache": True,
+    }
+    box = parse_colmap_options(("bounding_box=-1,-2,-3,1,2,3",))["bounding_box"]
+    np.testing.assert_array_equal(box[0], [-1, -2, -3])
+    with pytest.raises(ConfigError, match="'max_reproj_eror'"):
+        FuseConfig(workspace_path=Path("w"), method="colmap", colmap_options=("max_reproj_eror=2",))
+    with pytest.raises(ConfigError, match="min_num_pixels"):
+        FuseConfig(workspace_path=Path("w"), method="colmap", colmap_options=("min_num_pixels=many",))
+    with pytest.raises(ConfigError, match="key=value"):
+        parse_colmap_options(("min_num_pixels",))
+    with pytest.raises(ConfigError, match="bounding_box"):
+        parse_colmap_options(("bounding_box=1,2,3",))
+    with pytest.raises(ConfigError, match="rejects"):
+        parse_colmap_options(("min_num_pixels=-1",))
+    with pytest.raises(ConfigError, match="summary"):  # methods are not options
+        parse_colmap_options(("summary=1",))
+
+
+def test_colmap_method_and_options(workspace, analytic_scene):
+    gt = analytic_scene
+    loose = fuse(FuseConfig(workspace_path=workspace, method="colmap", output_path=workspace / "c3.ply"))
+    strict = fuse(
+        FuseConfig(
+            workspace_path=workspace,
+            method="colmap",
+            output_path=workspace / "c5.ply",
+            colmap_options=("min_num_pixels=5",),
+        )
+    )
+    assert 0 < strict.num_points < loose.num_points
+    assert loose.vis_path.is_file()
+    dist = _surface_distance(gt, read_point_cloud(loose.output_path).xyz)
+    assert np.median(dist) < 1e-5 * gt["scene"].size
+
+
+def test_vis_indices_follow_colmaps_image_numbering(workspace, analytic_scene):
+    """Our ``.vis`` and COLMAP's use the same image numbering (checked by projecting the points).
+
+    The sparse model is rewritten with image ids in reverse name order so that id order, name order
+    and the fusion.cfg order all differ.
+    """
+    from colmap_pvs.io import write_sparse_model
+    from colmap_pvs.types import Image, SparseModel
+
+    model = analytic_scene["model"]
+    n = len(model.images)
+    remap = {iid: n + 1 - iid for iid in model.images}
+    images = {
+        remap[i]: Image(remap[i], im.name, im.camera_id, im.cam_from_world, im.point3D_ids)
+        for i, im in model.images.items()
+    }
+    points = model.points
+    from dataclasses import replace
+
+    points = replace(points, track_image_ids=np.array([remap[int(i)] for i in points.track_image_ids]))
+    new = SparseModel(model.cameras, images, points, {im.name: iid for iid, im in images.items()})
+    shutil.rmtree(workspace / "sparse")
+    write_sparse_model(new, workspace / "sparse")
+    reread = read_sparse_model(workspace / "sparse")
+    index = image_indices(workspace / "sparse", reread)
+    by_index = {k: reread.image_by_name(name) for name, k in index.items()}
+
+    def check(result, min_fraction):
+        xyz = read_point_cloud(result.output_path).xyz.astype(np.float64)
+        offsets, idx = read_visibility(result.vis_path)
+        good = total = 0
+        for p in range(0, len(xyz), max(1, len(xyz) // 300)):
+            for k in idx[offsets[p] : offsets[p + 1]]:
+                image = by_index[int(k)]
+                cam = reread.camera_of(image)
+                x = image.R @ xyz[p] + image.t
+                depth = read_depth_map(workspace / "stereo" / "depth_maps" / f"{image.name}.geometric.bin")
+                K = fusion_intrinsics(cam.K, (cam.width, cam.height))
+                u, v = (K @ x)[:2] / x[2]
+                total += 1
+                if 0 <= u < cam.width and 0 <= v < cam.height:
+                    d = depth[int(v), int(u)]
+                    good += abs(d - x[2]) < 0.02 * x[2]
+        assert good >= min_fraction * total
+
+    check(fuse(FuseConfig(workspace_path=workspace, output_path=workspace / "ours.ply")), 0.95)
+    check(
+        fuse(FuseConfig(workspace_path=workspace, method="colmap", output_path=workspace / "colmap.ply")), 0.9
+    )
+
+
+@pytest.mark.colmap_binary
+def test_colmap_poisson_mesher_reads_our_cloud(workspace):
+    colmap = shutil.which("colmap")
+    if colmap is None:
+        pytest.skip("Debian's `colmap` executable is not installed")
+    result = fuse(FuseConfig(workspace_path=workspace))
+    out = workspace / "mesh.ply"
+    proc = subprocess.run(
+        [
+            colmap,
+            "poisson_mesher",
+            "--input_path",
+            str(result.output_path),
+            "--output_path",
+            str(out),
+            "--PoissonMeshing.depth",
+            "6",
+            "--PoissonMeshing.trim",
+            "3",
+            "--PoissonMeshing.num_threads",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    vertices, faces = read_mesh(out)
+    assert len(vertices) > 100 and len(faces) > 100

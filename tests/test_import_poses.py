@@ -1,0 +1,209 @@
+"""Known poses -> COLMAP model (``colmap_pvs.io.import_poses``): readers, conventions, triangulation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.io.import_poses import (
+    ImportPosesConfig,
+    import_poses,
+    read_known_cameras,
+    reprojection_errors,
+)
+
+
+def _rotation(seed: int) -> np.ndarray:
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def _project(K: np.ndarray, cam_from_world: np.ndarray, X: np.ndarray) -> np.ndarray:
+    x = K @ (cam_from_world[:, :3] @ X + cam_from_world[:, 3])
+    return x[:2] / x[2]
+
+
+# --------------------------------------------------------------------------- readers
+
+
+def test_strecha_reader_convention(tmp_path):
+    K = np.array([[689.87, 0, 379.7975], [0, 691.04, 251.3275], [0, 0, 1]])
+    R = _rotation(0)  # camera-to-world rotation (columns = camera axes in world)
+    C = np.array([-7.28, -7.58, 0.20])
+
+    def fmt_row(row) -> str:
+        return " ".join(repr(float(v)) for v in row)
+
+    lines = [*(fmt_row(r) for r in K), "0 0 0", *(fmt_row(r) for r in R), fmt_row(C), "768 512"]
+    (tmp_path / "cameras").mkdir()
+    (tmp_path / "cameras" / "0000.jpg.camera").write_text("\n".join(lines) + "\n")
+    fmt, cams = read_known_cameras(tmp_path)
+    assert fmt == "strecha" and len(cams) == 1
+    cam = cams[0]
+    assert cam.name == "0000.jpg" and cam.size == (768, 512)
+    X = C + R @ np.array([0.3, -0.2, 5.0])  # in front of the camera
+    strecha = K @ R.T @ (X - C)
+    expected = strecha[:2] / strecha[2] + 0.5  # centre-at-0 -> COLMAP's centre-at-0.5 convention
+    np.testing.assert_allclose(_project(cam.K, cam.cam_from_world, X), expected, atol=1e-9)
+    _, cams0 = read_known_cameras(tmp_path, principal_point_offset=0.0)
+    np.testing.assert_allclose(_project(cams0[0].K, cams0[0].cam_from_world, X), expected - 0.5, atol=1e-9)
+
+
+def test_hololens_reader_convention_and_errors(tmp_path):
+    K = np.array([[495.6, 0, 269.5], [0, 495.5, 169.2], [0, 0, 1]])
+    poses = []
+    for i in range(3):
+        T = np.eye(4)
+        T[:3, :3] = _rotation(i)
+        T[:3, 3] = [i, 2.0 * i, -1.0]
+        poses.append(T)  # camera-to-world
+    np.savetxt(tmp_path / "K.txt", K)
+    np.savetxt(tmp_path / "poses.txt", np.stack([p.ravel() for p in poses]))
+    (tmp_path / "frames.txt").write_text("a.png\nb.png\nc.png\n")
+    fmt, cams = read_known_cameras(tmp_path)
+    assert fmt == "hololens" and [c.name for c in cams] == ["a.png", "b.png", "c.png"]
+    for cam, T in zip(cams, poses, strict=True):
+        X = T[:3, :3] @ np.array([0.1, 0.2, 3.0]) + T[:3, 3]  # camera point (0.1, 0.2, 3) in world
+        np.testing.assert_allclose(
+            cam.cam_from_world[:, :3] @ X + cam.cam_from_world[:, 3], [0.1, 0.2, 3.0], atol=1e-9
+        )
+        np.testing.assert_allclose(cam.K, K)
+    (tmp_path / "frames.txt").write_text("a.png\nb.png\n")
+    with pytest.raises(WorkspaceError, match="2 frames but .* 3 poses"):
+        read_known_cameras(tmp_path)
+
+
+def test_json_and_csv_readers(tmp_path):
+    K = [[100.0, 0, 50], [0, 110.0, 40], [0, 0, 1]]
+    R = _rotation(3)
+    pose = np.concatenate([R, [[1.0], [2.0], [3.0]]], axis=1)
+    (tmp_path / "p.json").write_text(json.dumps([{"name": "x.png", "K": K, "cam_from_world": pose.tolist()}]))
+    fmt, cams = read_known_cameras(tmp_path / "p.json")
+    assert fmt == "json"
+    np.testing.assert_allclose(cams[0].cam_from_world, pose, atol=1e-12)
+    row = ",".join(["x.png", "100", "110", "50", "40", *(repr(float(v)) for v in pose.ravel())])
+    (tmp_path / "p.csv").write_text(
+        "name,fx,fy,cx,cy," + ",".join(f"p{i}" for i in range(12)) + "\n" + row + "\n"
+    )
+    fmt, cams = read_known_cameras(tmp_path / "p.csv")
+    assert fmt == "csv"
+    np.testing.assert_allclose(cams[0].cam_from_world, pose, atol=1e-12)
+    np.testing.assert_allclose(cams[0].K, K)
+    bad = pose.copy()
+    bad[:, :3] *= 2  # not a rotation
+    (tmp_path / "bad.json").write_text(
+        json.dumps([{"name": "x.png", "K": K, "cam_from_world": bad.tolist()}])
+    )
+    with pytest.raises(WorkspaceError, match="not orthonormal"):
+        read_known_cameras(tmp_path / "bad.json")
+    with pytest.raises(WorkspaceError, match="cannot tell the format"):
+        read_known_cameras(tmp_path)
+    with pytest.raises(ConfigError, match="frame_step"):
+        ImportPosesConfig(image_path=Path("i"), poses_path=Path("p"), output_path=Path("o"), frame_step=0)
+
+
+# --------------------------------------------------------------------------- triangulation
+
+
+def test_analytic_scene_points_land_on_the_surface(tmp_path):
+    """Exact poses of the analytic scene: triangulated points lie on its surface, poses stay fixed."""
+    import pycolmap
+    from scenes import make_analytic_workspace
+
+    gt = make_analytic_workspace(tmp_path / "ws", width=320, height=240, focal=300.0, write_maps=False)
+    model = gt["model"]
+    entries = [
+        {"name": im.name, "K": model.camera_of(im).K.tolist(), "cam_from_world": im.cam_from_world.tolist()}
+        for im in model.images.values()
+    ]
+    (tmp_path / "poses.json").write_text(json.dumps({"images": entries}))
+    out = import_poses(
+        ImportPosesConfig(
+            image_path=tmp_path / "ws" / "images",
+            poses_path=tmp_path / "poses.json",
+            output_path=tmp_path / "out",
+            max_num_features=1024,
+            num_threads=1,
+        )
+    )
+    assert out == tmp_path / "out" / "sparse"
+    rec = pycolmap.Reconstruction(str(out))
+    assert rec.num_reg_images() == 5 and rec.num_points3D() >= 20
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    assert np.median(gt["scene"].distance(xyz)) < 0.015 * gt["scene"].size
+    assert np.median(reprojection_errors(out)) < 1.0
+    by_name = {im.name: im for im in model.images.values()}
+    for image in rec.images.values():
+        np.testing.assert_allclose(
+            image.cam_from_world().matrix(), by_name[image.name].cam_from_world, atol=1e-6
+        )
+        assert image.camera.model_name == "PINHOLE"
+        np.testing.assert_allclose(image.camera.calibration_matrix(), model.camera_of(by_name[image.name]).K)
+    # Resumable: a second call returns the existing model without recomputing.
+    mtime = (out / "points3D.bin").stat().st_mtime_ns
+    import_poses(
+        ImportPosesConfig(
+            image_path=tmp_path / "ws" / "images",
+            poses_path=tmp_path / "poses.json",
+            output_path=tmp_path / "out",
+        )
+    )
+    assert (out / "points3D.bin").stat().st_mtime_ns == mtime
+
+
+def test_missing_images_are_named(tmp_path):
+    K = [[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]
+    pose = np.eye(3, 4).tolist()
+    (tmp_path / "p.json").write_text(json.dumps([{"name": "nope.png", "K": K, "cam_from_world": pose}]))
+    (tmp_path / "images").mkdir()
+    with pytest.raises(WorkspaceError, match="nope.png"):
+        import_poses(
+            ImportPosesConfig(
+                image_path=tmp_path / "images", poses_path=tmp_path / "p.json", output_path=tmp_path / "out"
+            )
+        )
+
+
+@pytest.mark.slow
+def test_hololens_subset_subpixel(shared_data_dir, tmp_path):
+    data = shared_data_dir / "hololens-dev"
+    if not (data / "poses.txt").is_file():
+        pytest.skip(f"{data} is missing")
+    out = import_poses(
+        ImportPosesConfig(
+            image_path=data / "images",
+            poses_path=data,
+            output_path=tmp_path / "h",
+            frame_step=3,
+            max_images=15,
+            max_num_features=1024,
+            num_threads=2,
+        )
+    )
+    errs = reprojection_errors(out)
+    assert errs.size > 1000
+    assert np.median(errs) < 1.0
+
+
+@pytest.mark.slow
+def test_fountain_subset_subpixel(shared_data_dir, tmp_path):
+    data = shared_data_dir / "fountain-P11"
+    if not (data / "cameras").is_dir():
+        pytest.skip(f"{data} is missing")
+    out = import_poses(
+        ImportPosesConfig(
+            image_path=data / "images",
+            poses_path=data,
+            output_path=tmp_path / "f",
+            max_images=6,
+            max_num_features=1024,
+            num_threads=2,
+        )
+    )
+    errs = reprojection_errors(out)
+    assert errs.size > 1000
+    assert np.median(errs) < 0.5

@@ -1,0 +1,295 @@
+"""Unit tests of the PVSNet building blocks: shapes, aggregation, regression, guidance, conv dispatch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from colmap_pvs.errors import ConfigError, ShapeError
+from colmap_pvs.model import PVSNetConfig
+from colmap_pvs.model.cascade import next_stage_range, probability_confidence, regress_inverse_depth
+from colmap_pvs.model.cost import downsample_sparse_depth, group_correlation, guidance_weights
+from colmap_pvs.model.features import FeatureNet, normalized_intensity_channels
+from colmap_pvs.model.layers import ConvBnReLU, Up3d, conv_nd
+from colmap_pvs.model.regularization import CoarseRegularizer, ResNet3D, StageRegularizer, UNet3D
+from colmap_pvs.model.visibility import (
+    CostAccumulator,
+    VisibilityNet,
+    aggregate,
+    normalized_weights,
+    truncate_visibility,
+)
+from colmap_pvs.model.warping import plane_range
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: extra threads only add synchronisation cost (and the CPU is shared)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+# ----------------------------------------------------------------------------- shapes
+
+
+def test_feature_net_shapes():
+    net = FeatureNet((16, 8, 4))
+    outs = net(torch.rand(2, 3, 32, 48))
+    assert [tuple(o.shape) for o in outs] == [(2, 16, 8, 12), (2, 8, 16, 24), (2, 4, 32, 48)]
+    assert len(net(torch.rand(1, 3, 32, 48), levels=1)) == 1
+
+
+def test_normalized_channels_shape_and_illumination_invariance():
+    img = F.interpolate(torch.rand(1, 3, 4, 6), size=(32, 48), mode="bilinear", align_corners=False)
+    a = normalized_intensity_channels(img, 2)
+    b = normalized_intensity_channels(0.7 * img + 0.2, 2)
+    assert a.shape == (1, 2, 8, 12)
+    torch.testing.assert_close(a, b, atol=0.1, rtol=0.05)
+    assert a.abs().max() > 0.5
+
+
+@pytest.mark.parametrize("train", [True, False])
+def test_volume_network_shapes(train):
+    x = torch.rand(1, 4, 8, 12, 16)
+    for net, cout in [(UNet3D(4, 8), 8), (ResNet3D(4, 8, 2), 8)]:
+        net.train(train)
+        assert net(x).shape == (1, cout, 8, 12, 16)
+    reg = CoarseRegularizer(4, 8, 1).train(train)
+    logits = reg(x)
+    assert len(logits) == 3 and all(lg.shape == (1, 8, 12, 16) for lg in logits)
+    assert StageRegularizer(4, 8).train(train)(x).shape == (1, 8, 12, 16)
+    vis = VisibilityNet(4, 8).train(train)
+    v = vis(x)
+    assert v.shape == (1, 1, 12, 16) and torch.all((v > 0) & (v < 1))
+    pv = vis.probability(x)
+    assert pv.shape == (1, 8, 12, 16)
+    torch.testing.assert_close(pv.amax(1, keepdim=True), v)  # V = max_d P_v
+
+
+def test_up3d_doubles_every_axis():
+    assert Up3d(8, 4)(torch.rand(1, 8, 2, 3, 4)).shape == (1, 4, 4, 6, 8)
+
+
+def test_group_correlation():
+    ref = torch.rand(2, 8, 5, 6)
+    warped = torch.rand(2, 8, 3, 5, 6)
+    out = group_correlation(ref, warped.clone(), 4)
+    expected = (warped.view(2, 4, 2, 3, 5, 6) * ref.view(2, 4, 2, 1, 5, 6)).mean(2)
+    assert out.shape == (2, 4, 3, 5, 6)
+    torch.testing.assert_close(out, expected)
+    with torch.no_grad():  # in-place path, and one channel per group
+        torch.testing.assert_close(group_correlation(ref, warped.clone(), 8), warped * ref[:, :, None])
+        torch.testing.assert_close(group_correlation(ref, warped.clone(), 4), expected)
+    with pytest.raises(ShapeError):
+        group_correlation(ref, warped, 3)
+    # Weighted accumulation (used by the cascade stages) == sum of weighted volumes.
+    wt = [torch.rand(2, 1, 5, 6) for _ in range(2)]
+    warps = [torch.rand(2, 8, 3, 5, 6) for _ in range(2)]
+    for groups in (4, 8):
+        expected = sum(
+            group_correlation(ref, x.clone(), groups) * v[:, None] for x, v in zip(warps, wt, strict=True)
+        )
+        for grad in (True, False):
+            with torch.set_grad_enabled(grad):
+                acc = None
+                for x, v in zip(warps, wt, strict=True):
+                    acc = group_correlation(ref, x.clone(), groups, pixel_weight=v, accumulate=acc)
+            torch.testing.assert_close(acc, expected)
+
+
+# ----------------------------------------------------------------------------- conv dispatch
+
+
+@pytest.mark.parametrize(
+    "shape, cout, stride", [((1, 8, 4, 6, 8), 8, 1), ((1, 4, 4, 6, 8), 3, 2), ((2, 4, 4, 6, 8), 6, 1)]
+)
+def test_conv_dispatch_matches_plain_conv(shape, cout, stride):
+    """The oneDNN group trick / direct call compute exactly the dense convolution, with gradients."""
+    x = torch.rand(*shape, requires_grad=True)
+    w = torch.rand(cout, shape[1], 3, 3, 3, requires_grad=True)
+    b = torch.rand(cout, requires_grad=True)
+    y = conv_nd(x, w, b, stride, 1)
+    ref = F.conv3d(x, w, b, stride, 1)
+    torch.testing.assert_close(y, ref, atol=1e-4, rtol=1e-4)
+    g = torch.rand_like(ref)
+    grads = torch.autograd.grad(y, (x, w, b), g)
+    grads_ref = torch.autograd.grad(ref, (x, w, b), g)
+    for a, r in zip(grads, grads_ref, strict=True):
+        torch.testing.assert_close(a, r, atol=1e-3, rtol=1e-4)
+    with torch.inference_mode():
+        torch.testing.assert_close(conv_nd(x, w, b, stride, 1), ref.detach(), atol=1e-4, rtol=1e-4)
+
+
+def test_bn_folding_in_eval_matches_unfolded():
+    layer = ConvBnReLU(4, 8)
+    layer.train()
+    for _ in range(3):
+        layer(torch.randn(2, 4, 4, 6, 8))  # populate running statistics
+    layer.eval()
+    x = torch.randn(1, 4, 4, 6, 8)
+    expected = F.relu(layer.bn(F.conv3d(x, layer.weight, None, 1, 1)))
+    with torch.no_grad():
+        torch.testing.assert_close(layer(x), expected, atol=1e-4, rtol=1e-4)
+
+
+# ----------------------------------------------------------------------------- aggregation
+
+
+def test_visibility_off_aggregation_is_plain_mean():
+    costs = [torch.rand(1, 4, 3, 5, 6) for _ in range(3)]
+    torch.testing.assert_close(aggregate(costs, None), sum(costs) / 3)
+    with torch.no_grad():  # in-place accumulation path
+        torch.testing.assert_close(aggregate([c.clone() for c in costs], None), sum(costs) / 3)
+    # Equal visibility weights also give the plain mean.
+    w = [torch.full((1, 1, 5, 6), 0.7)] * 3
+    torch.testing.assert_close(aggregate(costs, w), sum(costs) / 3)
+
+
+def test_weighted_aggregation():
+    costs = [torch.rand(1, 4, 3, 5, 6) for _ in range(2)]
+    w = [torch.rand(1, 1, 5, 6) + 0.1 for _ in range(2)]
+    expected = (costs[0] * w[0][:, None] + costs[1] * w[1][:, None]) / (w[0] + w[1])[:, None]
+    torch.testing.assert_close(aggregate(costs, w), expected)
+
+
+def test_truncation_zeroes_views_below_tau():
+    v = torch.tensor([[[[0.01, 0.049, 0.05, 0.051, 0.9]]]])
+    t = truncate_visibility(v, 0.05)
+    torch.testing.assert_close(t, torch.tensor([[[[0.0, 0.0, 0.0, 0.051, 0.9]]]]))
+    # A truncated view does not contribute to the aggregation at all.
+    costs = [torch.rand(1, 2, 3, 1, 5), torch.full((1, 2, 3, 1, 5), 100.0)]
+    weights = [torch.ones(1, 1, 1, 5), truncate_visibility(torch.full((1, 1, 1, 5), 0.04), 0.05)]
+    torch.testing.assert_close(aggregate(costs, weights), costs[0])
+
+
+def test_all_truncated_guard_is_finite_plain_mean():
+    costs = [torch.rand(1, 2, 3, 4, 5) for _ in range(3)]
+    zeros = [torch.zeros(1, 1, 4, 5)] * 3
+    out = aggregate(costs, zeros)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out, sum(costs) / 3)
+    # Mixed: some pixels all-truncated, others not.
+    w = [torch.zeros(1, 1, 4, 5) for _ in range(3)]
+    w[1][..., 0, :] = 0.5
+    out = aggregate(costs, w)
+    torch.testing.assert_close(out[..., 0, :], costs[1][..., 0, :])
+    torch.testing.assert_close(out[..., 1:, :], (sum(costs) / 3)[..., 1:, :])
+    # Gradients stay finite too.
+    c = [x.clone().requires_grad_() for x in costs]
+    aggregate(c, zeros).sum().backward()
+    assert all(torch.isfinite(x.grad).all() for x in c)
+
+
+def test_normalized_weights():
+    w = [torch.tensor([[[[0.2, 0.0]]]]), torch.tensor([[[[0.6, 0.0]]]])]
+    n = normalized_weights(w)
+    torch.testing.assert_close(torch.cat(n, 1), torch.tensor([[[[0.25, 0.5]], [[0.75, 0.5]]]]))
+
+
+def test_accumulator_requires_a_volume():
+    with pytest.raises(ValueError):
+        CostAccumulator().result()
+
+
+# ----------------------------------------------------------------------------- regression
+
+
+def test_inverse_depth_regression_and_confidence():
+    inv_start, inv_step = plane_range(torch.tensor([1.0]), torch.tensor([5.0]), 8)
+    prob = torch.zeros(1, 8, 2, 3)
+    prob[:, 3] = 1.0
+    reg = regress_inverse_depth(prob, inv_start, inv_step)
+    expected = 1.0 / (inv_start - 3 * inv_step)
+    torch.testing.assert_close(reg.depth, expected.view(1, 1, 1).expand(1, 2, 3))
+    torch.testing.assert_close(reg.index, torch.full((1, 2, 3), 3.0))
+    assert torch.all(reg.inv_sigma < 1e-5)
+    # Two equal peaks: the mean is taken in inverse depth (eq. 5), not in depth.
+    prob = torch.zeros(1, 8, 1, 1)
+    prob[:, 0] = prob[:, 7] = 0.5
+    reg = regress_inverse_depth(prob, inv_start, inv_step)
+    torch.testing.assert_close(reg.depth.view(()), torch.tensor(1.0 / (0.5 * (1.0 + 0.2))))
+    conf = probability_confidence(prob, reg.index, 4)
+    torch.testing.assert_close(conf.view(()), torch.tensor(0.0))
+    uniform = torch.full((1, 8, 1, 1), 1 / 8)
+    r = regress_inverse_depth(uniform, inv_start, inv_step)
+    torch.testing.assert_close(probability_confidence(uniform, r.index, 4).view(()), torch.tensor(0.5))
+
+
+def test_next_stage_range_is_clamped_and_has_min_width():
+    dmin, dmax = torch.tensor([1.0]), torch.tensor([5.0])
+    inv_start, inv_step = plane_range(dmin, dmax, 8)
+    inv_mean = torch.tensor([0.21, 0.6, 0.99]).view(1, 1, 1, 3)
+    sigma = torch.tensor([0.0, 0.0, 0.5]).view(1, 1, 1, 3)
+    start, step = next_stage_range(
+        inv_mean,
+        sigma,
+        inv_step,
+        (2, 6),
+        4,
+        k=1.5,
+        min_halfwidth_planes=1.0,
+        inv_lo=1 / dmax,
+        inv_hi=1 / dmin,
+    )
+    assert start.shape == step.shape == (1, 1, 2, 6)
+    end = start - 3 * step
+    assert torch.all(start <= 1.0 + 1e-6) and torch.all(end >= 0.2 - 1e-6)
+    # Minimum half-width of one coarse plane spacing in the middle.
+    torch.testing.assert_close(step[0, 0, 0, 2], 2 * inv_step.view(()) / 3, atol=1e-3, rtol=1e-3)
+    # A huge sigma is limited to the full range.
+    assert torch.all(2 * 1.5 * 0.5 >= start[..., -1] - end[..., -1])
+
+
+# ----------------------------------------------------------------------------- guidance
+
+
+def test_guidance_weights_and_sparse_downsampling():
+    sparse = torch.zeros(1, 1, 8, 8)
+    sparse[0, 0, 1, 2] = 3.0
+    sparse[0, 0, 2, 3] = 2.0  # nearer hint in the same 4x4 block wins
+    small = downsample_sparse_depth(sparse, 4)
+    assert small.shape == (1, 1, 2, 2)
+    torch.testing.assert_close(small[0, 0], torch.tensor([[2.0, 0.0], [0.0, 0.0]]))
+    inv_start, inv_step = plane_range(torch.tensor([1.0]), torch.tensor([5.0]), 8)
+    hint_depth = 1.0 / (inv_start.view(()) - 5 * inv_step.view(()))
+    small[0, 0, 0, 0] = hint_depth
+    gw = guidance_weights(small, inv_start, inv_step, 8, k=10.0, c=1.0)
+    assert gw.shape == (1, 8, 2, 2)
+    assert int(gw[0, :, 0, 0].argmax()) == 5
+    torch.testing.assert_close(gw[0, 5, 0, 0], torch.tensor(10.0))
+    torch.testing.assert_close(gw[0, :, 1, 1], torch.ones(8))  # no hint: factor 1
+    glog = guidance_weights(small, inv_start, inv_step, 8, k=10.0, c=1.0, log=True)
+    torch.testing.assert_close(glog.exp(), gw)
+    # A hint far outside the hypothesis range is ignored (factor 1), not allowed to zero the volume.
+    small[0, 0, 1, 0] = 0.3  # nearer than depth_min = 1
+    torch.testing.assert_close(
+        guidance_weights(small, inv_start, inv_step, 8, k=10.0, c=1.0)[0, :, 1, 0], torch.ones(8)
+    )
+
+
+def test_config_validation():
+    with pytest.raises(ConfigError, match="planes_per_stage"):
+        PVSNetConfig(planes_per_stage=(48, 16))
+    with pytest.raises(ConfigError, match="multiples"):
+        PVSNetConfig(planes_per_stage=(48, 18, 8))
+    with pytest.raises(ConfigError, match="loss_weights"):
+        PVSNetConfig(loss_weights=(1.0, 1.0))
+    with pytest.raises(ConfigError, match="groups_per_stage"):
+        PVSNetConfig(groups_per_stage=(8, 8, 3))
+    cfg = PVSNetConfig(
+        num_stages=1,
+        planes_per_stage=(32,),
+        groups_per_stage=(8,),
+        stage_channels=(),
+        loss_weights=(0.5, 0.5, 1.0),
+    )
+    assert cfg.output_scales == (4, 4, 4)
+    assert PVSNetConfig().output_scales == (4, 4, 4, 2, 1)

@@ -1,0 +1,206 @@
+"""Whole-model tests of PVSNet: shapes at odd sizes and N, input checks, padding, switches, guidance."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from colmap_pvs.config import replace_config
+from colmap_pvs.errors import ShapeError
+from colmap_pvs.model import PVSNet, PVSNetConfig, PVSNetOutput
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: extra threads only add synchronisation cost (and the CPU is shared)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+TINY = PVSNetConfig(
+    feature_channels=(8, 8, 8),
+    planes_per_stage=(8, 8, 4),
+    groups_per_stage=(4, 4, 4),
+    visibility_channels=4,
+    regularization_channels=4,
+    stage_channels=(4, 4),
+)
+
+
+def make_inputs(B: int, N: int, H: int, W: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(B, N, 3, H, W, generator=g)
+    K = torch.tensor([[0.9 * W, 0.0, W / 2], [0.0, 0.9 * W, H / 2], [0.0, 0.0, 1.0]])
+    intrinsics = K.expand(B, N, 3, 3).clone()
+    poses = torch.eye(4).expand(B, N, 4, 4).clone()
+    for i in range(1, N):
+        poses[:, i, 0, 3] = 0.1 * i * (-1) ** i
+        poses[:, i, 1, 3] = 0.03 * i
+    return images, intrinsics, poses, torch.full((B,), 1.0), torch.full((B,), 6.0)
+
+
+def check_output(out: PVSNetOutput, cfg: PVSNetConfig, B: int, N: int, H: int, W: int) -> None:
+    h4, w4 = -(-H // 4), -(-W // 4)
+    assert out.depth.shape == (B, H, W)
+    assert out.confidence.shape == (B, H, W)
+    assert out.visibility.shape == (B, N - 1, h4, w4)
+    assert len(out.depths) == len(cfg.loss_weights) == len(out.confidences)
+    for d, c, s in zip(out.depths, out.confidences, cfg.output_scales, strict=True):
+        assert d.shape == c.shape == (B, -(-H // s), -(-W // s))
+    for t in [out.depth, out.confidence, out.visibility, *out.depths]:
+        assert torch.isfinite(t).all()
+    assert torch.all((out.confidence >= 0) & (out.confidence <= 1))
+    assert torch.all((out.visibility >= 0) & (out.visibility <= 1))
+    assert torch.all(out.depth >= 1.0 - 1e-3) and torch.all(out.depth <= 6.0 + 1e-3)
+
+
+@pytest.mark.parametrize(
+    "B, N, H, W", [(1, 3, 48, 64), (1, 2, 45, 70), (2, 5, 45, 70), (1, 3, 17, 33)], ids=str
+)
+def test_shapes_inference(B, N, H, W):
+    model = PVSNet(TINY).eval()
+    with torch.inference_mode():
+        out = model(*make_inputs(B, N, H, W))
+    check_output(out, TINY, B, N, H, W)
+    assert torch.equal(out.depth, out.depths[-1])
+
+
+def test_training_forward_backward_at_odd_size():
+    model = PVSNet(TINY).train()
+    out = model(*make_inputs(1, 3, 45, 70))
+    check_output(out, TINY, 1, 3, 45, 70)
+    loss = sum(w * d.mean() for w, d in zip(TINY.loss_weights, out.depths, strict=True))
+    loss.backward()
+    grads = [p.grad for p in model.parameters() if p.requires_grad]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert (
+        model.visibility_net.unet.conv0.weight.grad.abs().sum() > 0
+    )  # visibility learns from the depth loss
+
+
+def test_default_config_small_input():
+    cfg = PVSNetConfig()
+    assert cfg.loss_weights == (0.5, 0.5, 0.7, 0.7, 0.7) and len(cfg.output_scales) == 5
+    model = PVSNet().eval()
+    with torch.inference_mode():
+        out = model(*make_inputs(1, 3, 40, 56))
+    check_output(out, cfg, 1, 3, 40, 56)
+
+
+def test_padding_is_bottom_right_replicate_and_cropped_exactly():
+    model = PVSNet(TINY).eval()
+    images, K, poses, dmin, dmax = make_inputs(1, 3, 45, 70)
+    padded = F.pad(images.view(3, 3, 45, 70), (0, 10, 0, 3), mode="replicate").view(1, 3, 3, 48, 80)
+    with torch.inference_mode():
+        out = model(images, K, poses, dmin, dmax)
+        ref = model(padded, K, poses, dmin, dmax)
+    torch.testing.assert_close(out.depth, ref.depth[:, :45, :70])
+    torch.testing.assert_close(out.depths[0], ref.depths[0][:, :12, :18])
+    torch.testing.assert_close(out.visibility, ref.visibility[:, :, :12, :18])
+
+
+@pytest.mark.parametrize("num_stages", [1, 2])
+def test_fewer_stages_still_give_full_resolution(num_stages):
+    cfg = replace_config(
+        TINY,
+        num_stages=num_stages,
+        planes_per_stage=TINY.planes_per_stage[:num_stages],
+        groups_per_stage=TINY.groups_per_stage[:num_stages],
+        stage_channels=TINY.stage_channels[: num_stages - 1],
+        loss_weights=TINY.loss_weights[: num_stages + 2],
+    )
+    model = PVSNet(cfg).eval()
+    with torch.inference_mode():
+        out = model(*make_inputs(1, 2, 45, 70))
+    check_output(out, cfg, 1, 2, 45, 70)
+
+
+def test_visibility_off_and_normalized_channels():
+    cfg = replace_config(TINY, visibility=False, normalized_channels=2)
+    model = PVSNet(cfg).eval()
+    assert model.visibility_net is None
+    with torch.inference_mode():
+        out = model(*make_inputs(1, 3, 32, 32))
+    check_output(out, cfg, 1, 3, 32, 32)
+    assert torch.all(out.visibility == 1)
+
+
+def test_truncation_zeroes_low_visibility_in_output():
+    model = PVSNet(replace_config(TINY, truncation_threshold=0.5)).eval()
+    with torch.inference_mode():
+        out = model(*make_inputs(1, 3, 32, 32))
+    v = out.visibility
+    assert torch.all((v == 0) | (v > 0.5))
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (lambda a: (a[0][0], *a[1:]), "images"),
+        (lambda a: (a[0][:, :1], a[1][:, :1], a[2][:, :1], *a[3:]), "N >= 2"),
+        (lambda a: (a[0], a[1][:, :, :2], *a[2:]), "intrinsics"),
+        (lambda a: (a[0], a[1], a[2][:, :, :3], *a[3:]), "cam_from_world"),
+        (lambda a: (*a[:3], a[3][None], a[4]), "depth_min"),
+        (lambda a: (*a[:4], torch.ones(2)), "depth_max"),
+        (lambda a: (*a, torch.zeros(1, 1, 16, 20)), "sparse_depth"),
+        (lambda a: (a[0].to(torch.uint8), *a[1:]), "floating point"),
+    ],
+)
+def test_shape_errors_name_the_shape(args, match):
+    model = PVSNet(TINY).eval()
+    inputs = make_inputs(1, 3, 16, 16)
+    with pytest.raises(ShapeError, match=match):
+        model(*args(inputs))
+
+
+def test_depth_range_errors():
+    model = PVSNet(TINY).eval()
+    images, K, poses, _, _ = make_inputs(1, 2, 16, 16)
+    with pytest.raises(ValueError, match="depth_min"):
+        model(images, K, poses, torch.zeros(1), torch.ones(1))
+    with pytest.raises(ValueError, match="depth_max"):
+        model(images, K, poses, torch.ones(1), torch.ones(1))
+
+
+def test_sparse_guidance_moves_depth_toward_hint():
+    torch.manual_seed(0)
+    inputs = make_inputs(1, 3, 32, 32)
+    hint_depth = 4.5
+    sparse = torch.zeros(1, 1, 32, 32)
+    sparse[..., ::2, ::2] = hint_depth  # hints in every 2x2 block: every stage pixel is hinted
+    base = PVSNet(TINY).eval()
+    with torch.inference_mode():
+        plain = base(*inputs, sparse_depth=sparse)
+        for mode in ("probability", "both", "cost"):
+            guided_model = PVSNet(replace_config(TINY, sparse_guidance=True, guidance_mode=mode)).eval()
+            guided_model.load_state_dict(base.state_dict())  # no retraining
+            guided = guided_model(*inputs, sparse_depth=sparse)
+            assert torch.isfinite(guided.depth).all()
+            if mode == "cost":
+                assert not torch.allclose(guided.depth, plain.depth)
+                continue
+            hinted = sparse > 0
+            before = (plain.depth[:, None][hinted] - hint_depth).abs()
+            after = (guided.depth[:, None][hinted] - hint_depth).abs()
+            assert after.mean() < 0.5 * before.mean(), (mode, after.mean(), before.mean())
+        # Guidance off: the hints are ignored.
+        torch.testing.assert_close(base(*inputs).depth, plain.depth)
+
+
+def test_import_sets_no_global_torch_state():
+    code = (
+        "import torch\n"
+        "s = lambda: (torch.get_num_threads(), torch.get_default_dtype(), torch.is_grad_enabled(),"
+        " torch.backends.mkldnn.enabled, torch.are_deterministic_algorithms_enabled(),"
+        " torch.get_float32_matmul_precision())\n"
+        "a = s()\n"
+        "import colmap_pvs.model\n"
+        "assert s() == a, (a, s())\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -1,0 +1,132 @@
+"""``reconstruct``: the fast variant starts from an existing sparse model of the analytic scene; the
+slow one runs SfM on ``../shared/data/fern-images`` (stopping after mapping)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from colmap_pvs.cli.main import main
+
+from colmap_pvs.errors import CheckpointError, WorkspaceError
+from colmap_pvs.io.ply import read_point_cloud
+from colmap_pvs.reconstruct import ReconstructConfig, reconstruct
+
+
+def _tiny_checkpoint(path: Path) -> Path:
+    import torch
+
+    from colmap_pvs.model import PVSNet, PVSNetConfig, save_checkpoint
+
+    torch.manual_seed(0)
+    config = PVSNetConfig(
+        feature_channels=(8, 8, 8),
+        num_stages=1,
+        planes_per_stage=(8,),
+        groups_per_stage=(4,),
+        stage_channels=(),
+        visibility_channels=4,
+        regularization_channels=4,
+        loss_weights=(0.5, 0.5, 0.7),
+    )
+    return save_checkpoint(path, PVSNet(config))
+
+
+def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, capsys):
+    ws = analytic_scene["root"]
+    ckpt = _tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    argv = [
+        "reconstruct",
+        "--image_path",
+        str(ws / "images"),
+        "--workspace_path",
+        str(out),
+        "--input_path",
+        str(ws / "sparse"),
+        "--checkpoint",
+        str(ckpt),
+        "--num_views",
+        "3",
+        "--mesh_depth",
+        "6",
+        "--num_threads",
+        "1",
+    ]
+    assert main(argv) == 0
+    report = capsys.readouterr().out
+    assert "images registered: 5/5" in report and "time per stage" in report
+    for stage in ("undistort", "stereo", "fusion"):
+        assert stage in report
+    dense = out / "dense"
+    assert len(list((dense / "stereo" / "depth_maps").glob("*.geometric.bin"))) == 5
+    assert (dense / "fused.ply").is_file() and (dense / "fused.ply.vis").is_file()
+    read_point_cloud(dense / "fused.ply")
+
+    # A second run finds every finished output and recomputes nothing.
+    mtime = (dense / "fused.ply").stat().st_mtime_ns
+    result = reconstruct(
+        ReconstructConfig(
+            image_path=ws / "images",
+            workspace_path=out,
+            input_path=ws / "sparse",
+            checkpoint=ckpt,
+            num_views=3,
+            mesh_depth=6,
+        )
+    )
+    assert {"undistort", "stereo", "fusion"} <= set(result.resumed)
+    assert (dense / "fused.ply").stat().st_mtime_ns == mtime
+    assert result.num_registered == 5 and result.num_fused_points == len(
+        read_point_cloud(dense / "fused.ply")
+    )
+
+    # With the fused cloud gone (a run stopped during fusion), only fusion runs again.
+    (dense / "fused.ply").unlink()
+    result = reconstruct(
+        ReconstructConfig(
+            image_path=ws / "images",
+            workspace_path=out,
+            input_path=ws / "sparse",
+            checkpoint=ckpt,
+            num_views=3,
+            mesh_depth=6,
+        )
+    )
+    assert "stereo" in result.resumed and "fusion" not in result.resumed
+    assert (dense / "fused.ply").is_file()
+
+
+def test_reconstruct_errors(tmp_path, monkeypatch):
+    import colmap_pvs.stereo as stereo_module
+
+    with pytest.raises(WorkspaceError, match="does not exist"):
+        reconstruct(ReconstructConfig(image_path=tmp_path / "nope", workspace_path=tmp_path / "o"))
+    (tmp_path / "imgs").mkdir()
+    with pytest.raises(WorkspaceError, match="0 image"):
+        reconstruct(ReconstructConfig(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
+    for i in range(2):
+        (tmp_path / "imgs" / f"{i}.png").write_bytes(b"")
+    monkeypatch.setattr(stereo_module, "DEFAULT_CHECKPOINT", tmp_path / "missing.pt")
+    with pytest.raises(CheckpointError, match="missing.pt"):
+        reconstruct(ReconstructConfig(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
+
+
+@pytest.mark.slow
+def test_fern_sfm_registers_every_image(shared_data_dir, tmp_path):
+    images = shared_data_dir / "fern-images"
+    if not images.is_dir():
+        pytest.skip(f"{images} is missing")
+    result = reconstruct(
+        ReconstructConfig(
+            image_path=images,
+            workspace_path=tmp_path / "fern",
+            single_camera=True,
+            max_num_features=1024,
+            num_threads=2,
+            stop_after="mapping",
+        )
+    )
+    assert result.num_images == 20
+    assert result.num_registered == 20
+    assert result.num_points3D > 500

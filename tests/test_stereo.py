@@ -1,0 +1,146 @@
+"""The ``stereo`` step end to end: COLMAP maps written, resumable, skips, patch-match.cfg, real data."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import colmap_pvs.stereo as stereo_module
+from colmap_pvs.cli.main import main
+from colmap_pvs.errors import CheckpointError
+from colmap_pvs.fusion import FuseConfig, fuse
+from colmap_pvs.geometry import backproject_depth
+from colmap_pvs.io.maps import fusion_intrinsics, read_depth_map, read_normal_map
+from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
+from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
+from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
+
+
+@pytest.fixture(scope="module")
+def synthetic_ws(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("stereo") / "ws"
+    make_synthetic_workspace(root, SyntheticWorkspaceConfig(seed=3, width=96, height=72, num_views=4))
+    return root
+
+
+def _copy(ws: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "ws"
+    shutil.copytree(ws, out)
+    return out
+
+
+def test_stereo_refuses_to_run_without_weights(synthetic_ws, tmp_path, monkeypatch, capsys):
+    ws = _copy(synthetic_ws, tmp_path)
+    monkeypatch.setattr(stereo_module, "DEFAULT_CHECKPOINT", tmp_path / "none.pt")
+    with pytest.raises(CheckpointError, match="--checkpoint"):
+        run_stereo(StereoConfig(workspace_path=ws))
+    assert main(["stereo", "--workspace_path", str(ws)]) == 1
+    assert "none.pt" in capsys.readouterr().err
+    with pytest.raises(CheckpointError, match="missing.pt"):
+        run_stereo(StereoConfig(workspace_path=ws, checkpoint=tmp_path / "missing.pt"))
+    assert not list((ws / "stereo" / "depth_maps").glob("*.bin"))
+
+
+def test_stereo_cli_writes_colmap_maps_and_resumes(synthetic_ws, tmp_path, tiny_checkpoint, capsys):
+    ws = _copy(synthetic_ws, tmp_path)
+    args = ["stereo", "--workspace_path", str(ws), "--checkpoint", str(tiny_checkpoint), "--num_views", "3",
+            "--min_confidence", "0", "--previews", "true", "--max_image_size", "64"]
+    assert main(args) == 0
+    assert "computed: 4" in capsys.readouterr().out
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    assert read_fusion_cfg(ws / "stereo" / "fusion.cfg") == names
+    for name in names:
+        im = model.image_by_name(name)
+        cam = model.camera_of(im)
+        depth = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin")
+        assert max(depth.shape) == 64 and depth.shape == (48, 64)  # 96x72 -> longest side 64
+        np.testing.assert_array_equal(
+            depth, read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin")
+        )
+        normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{name}.geometric.bin")
+        valid = depth > 0
+        assert valid.mean() > 0.5
+        np.testing.assert_allclose(np.linalg.norm(normals[valid], axis=-1), 1.0, atol=1e-4)
+        assert np.all(normals[~valid] == 0)
+        K = fusion_intrinsics(cam.K, (cam.width, cam.height), (64, 48))
+        pts = backproject_depth(depth, K)
+        assert np.all(np.sum(normals * pts, -1)[valid] < 0)  # camera-facing
+        assert (ws / "stereo" / "previews" / f"{name}.depth.png").is_file()
+        assert len(list((ws / "stereo" / "previews").glob(f"{name}.visibility.*.png"))) == 2
+    assert (ws / "stereo" / stereo_module.CONFIG_FILENAME).is_file()
+    # A rerun resumes: nothing is recomputed unless --overwrite.
+    first = (ws / "stereo" / "depth_maps" / f"{names[0]}.geometric.bin").stat().st_mtime_ns
+    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+                                  max_image_size=64))
+    assert res.processed == [] and sorted(res.already_done) == names
+    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+                                  max_image_size=64, overwrite=True))
+    assert sorted(res.processed) == names
+    assert (ws / "stereo" / "depth_maps" / f"{names[0]}.geometric.bin").stat().st_mtime_ns != first
+    assert not list(ws.rglob("*.tmp"))
+
+
+def test_patch_match_cfg_explicit_sources_are_used(synthetic_ws, tmp_path, tiny_checkpoint):
+    ws = _copy(synthetic_ws, tmp_path)
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", {names[0]: [names[3], names[1]]})
+    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
+    assert res.processed == [names[0]]
+    assert res.sources[names[0]] == [names[3], names[1]]
+    (ws / "stereo" / "patch-match.cfg").write_text(f"{names[1]}\n__all__\n{names[2]}\n__auto__, 1\n")
+    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48,
+                                  num_views=3))
+    assert sorted(res.processed) == [names[1], names[2]]
+    assert len(res.sources[names[1]]) == 2  # __all__ capped at num_views - 1
+    assert len(res.sources[names[2]]) == 1
+
+
+def test_image_without_points_is_skipped_not_fatal(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
+    ws = _copy(synthetic_ws, tmp_path)
+    model = read_sparse_model(ws / "sparse")
+    victim = sorted(model.images.values(), key=lambda im: im.name)[1]
+    images = dict(model.images)
+    images[victim.image_id] = dataclasses.replace(victim, point3D_ids=np.zeros(0, np.int64))
+    pts = model.points
+    keep = pts.track_image_ids != victim.image_id
+    counts = np.add.reduceat(keep.astype(np.int64), pts.track_offsets[:-1]) if len(pts) else []
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    points = dataclasses.replace(pts, track_offsets=offsets, track_image_ids=pts.track_image_ids[keep])
+    shutil.rmtree(ws / "sparse")
+    write_sparse_model(dataclasses.replace(model, images=images, points=points), ws / "sparse")
+    (ws / "stereo" / "patch-match.cfg").unlink()
+    with caplog.at_level("WARNING"):
+        res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
+    assert victim.name in res.skipped and victim.name not in res.processed
+    assert len(res.processed) == 3
+    assert victim.name in caplog.text
+    assert not (ws / "stereo" / "depth_maps" / f"{victim.name}.geometric.bin").exists()
+
+
+def test_statue_runs_end_to_end(statue_workspace, tmp_path, tiny_checkpoint):
+    """The real COLMAP workspace (mixed image heights) with a tiny checkpoint: no crash, 23 maps."""
+    ws = tmp_path / "statue"
+    shutil.copytree(statue_workspace, ws)
+    for p in ws.rglob("*"):
+        p.chmod(0o755 if p.is_dir() else 0o644)
+    ws.chmod(0o755)
+    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+                                  max_image_size=96, min_confidence=0.0))
+    assert len(res.processed) == 23 and not res.skipped
+    _, model = load_workspace(ws)
+    for im in model.images.values():
+        cam = model.camera_of(im)
+        depth = read_depth_map(ws / "stereo" / "depth_maps" / f"{im.name}.geometric.bin")
+        # Each map keeps its own image's aspect ratio (heights 656..662 differ slightly).
+        assert depth.shape[1] == 96
+        assert abs(depth.shape[0] - round(cam.height * 96 / cam.width)) <= 1
+    # COLMAP's own fusion reads every map (random weights fuse few points; no crash is the check).
+    fused = fuse(FuseConfig(workspace_path=ws, output_path=tmp_path / "fused.ply", method="colmap"))
+    assert fused.output_path.is_file()
