@@ -151,6 +151,26 @@ def make_ablation_checkpoint(checkpoint: Path, out: Path) -> Path:
     )
 
 
+def make_guidance_off_checkpoint(checkpoint: Path, out: Path) -> Path | None:
+    """The same weights with sparse guidance off (``None`` if the checkpoint has it off already)."""
+    from colmap_pvs.config import replace_config
+    from colmap_pvs.evaluate import file_sha256
+    from colmap_pvs.model import PVSNet, load_checkpoint, save_checkpoint
+
+    model, meta = load_checkpoint(checkpoint, map_location="cpu")
+    if not model.config.sparse_guidance:
+        return None
+    off = PVSNet(replace_config(model.config, sparse_guidance=False))
+    off.load_state_dict(model.state_dict(), strict=True)
+    return save_checkpoint(
+        out,
+        off,
+        step=int(meta.get("step", 0)),
+        extra={"derived_from": str(checkpoint), "derived_from_sha256": file_sha256(checkpoint),
+               "note": "sparse guidance switched off"},
+    )
+
+
 # --------------------------------------------------------------------------- sparse-interpolation baseline
 
 
@@ -417,6 +437,9 @@ def main(argv: list[str] | None = None) -> int:
         disturbed[r] = keep + far_sources(names.index(r), names, row, args.disturb_count)
     clean = {r: ranked(r)[: n_d - 1] for r in refs}
     settings.append((f"PVSNet N={n_d}, {args.disturb_count} disturbing", n_d, ckpt, disturbed))
+    no_guidance = make_guidance_off_checkpoint(ckpt, work / "checkpoints" / f"{ckpt.stem}.guidance_off.pt")
+    if no_guidance is not None:
+        settings.append((f"PVSNet N={n_d}, sparse guidance off", n_d, no_guidance, clean))
     settings.append((f"mean-agg N={n_d} (visibility off)", n_d, ablation_ckpt, clean))
     settings.append((f"mean-agg N={n_d}, {args.disturb_count} disturbing", n_d, ablation_ckpt, disturbed))
     settings.append(("sparse interpolation (baseline)", 0, None, {r: [] for r in refs}))

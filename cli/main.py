@@ -7,16 +7,25 @@ a Python user would call. Installed as ``colmap_pvs.cli`` (never as a top-level 
 
 from __future__ import annotations
 
-import argparse
+import os
+
+# OpenMP's default busy-waiting made 2-thread torch runs 2-20x slower on a shared 2-core CPU.
+# Set before torch is imported (the CLI is an entry point; the library itself never does this).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import dataclasses
 import importlib
+import json
 import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 from colmap_pvs import __version__
-from colmap_pvs.config import add_config_arguments, config_from_args
-from colmap_pvs.errors import ColmapPVSError
+from colmap_pvs.config import add_config_arguments, config_from_args, config_from_dict
+from colmap_pvs.errors import ColmapPVSError, ConfigError
 
 logger = logging.getLogger("colmap_pvs.cli")
 
@@ -99,7 +108,13 @@ COMMANDS: tuple[Command, ...] = (
         "colmap_pvs.cli.reports_pipeline:report_demo",
         positional=("output_path",),
     ),
-    Command("train", "train PVSNet on synthetic scenes (anti-noise strategy)", planned="issue #6"),
+    Command(
+        "train",
+        "train PVSNet on synthetic scenes (anti-noise strategy); resumable from OUTPUT_DIR/last.pt",
+        "colmap_pvs.train:TrainConfig",
+        "colmap_pvs.train:train",
+        "colmap_pvs.cli.reports:report_train",
+    ),
     Command(
         "evaluate depth",
         "depth-map metrics (coverage, MAE, RMSE, AbsRel, % under thresholds) against GT depth",
@@ -147,10 +162,36 @@ def build_parser() -> argparse.ArgumentParser:
             p = sub.add_parser(cmd.name, help=help_text, description=help_text)
         if cmd.config is not None:
             add_config_arguments(p, _load(cmd.config), required=cmd.required)
+            p.add_argument(
+                "--config_file",
+                dest="_config_file",
+                default=None,
+                metavar="JSON",
+                help="JSON file of config values, nested ones included (flags given on the command line "
+                "override it); a saved resolved config (e.g. a run's config.json) works too",
+            )
         for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
             p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
                            help=f"same as --{name}")
     return parser
+
+
+def _build_config(config_cls: type, args: argparse.Namespace):
+    """Config from ``--config_file`` (if given) overridden by the flags given on the command line."""
+    if args._config_file is None:
+        return config_from_args(config_cls, args)
+    path = Path(args._config_file)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read --config_file {str(path)!r}: {exc}") from None
+    if isinstance(data, dict) and "config" in data and "config_class" in data:
+        data = data["config"]
+    if not isinstance(data, dict):
+        raise ConfigError(f"--config_file {str(path)!r} must hold a JSON object")
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    data.update({k: v for k, v in vars(args).items() if k in fields})
+    return config_from_dict(config_cls, data)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -167,11 +208,14 @@ def main(argv: list[str] | None = None) -> int:
     config_cls = _load(cmd.config)
     function: Callable = _load(cmd.function)
     try:
-        config = config_from_args(config_cls, args)
+        config = _build_config(config_cls, args)
         result = function(config)
     except ColmapPVSError as exc:
         sys.stderr.write(f"colmap-pvs {cmd.name}: error: {exc}\n")
         return 1
+    except KeyboardInterrupt as exc:  # includes training's TrainingInterrupted (state saved)
+        sys.stderr.write(f"colmap-pvs {cmd.name}: interrupted{': ' + str(exc) if str(exc) else ''}\n")
+        return 130
     if cmd.report is not None:
         sys.stdout.write(_load(cmd.report)(result) + "\n")
     return 0

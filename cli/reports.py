@@ -17,3 +17,7 @@ def report_stereo(result) -> str:
     ]
     lines += [f"  skipped {name}: {why}" for name, why in result.skipped.items()]
     return "\n".join(lines)
+
+
+def report_train(result) -> str:
+    return f"checkpoint: {result}"

@@ -157,6 +157,12 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return {f.name: _jsonable(getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.init}
 
 
+def current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
     path = Path(path)
@@ -165,6 +171,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp creates 0600; give the usual permissions
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -256,3 +263,13 @@ def config_from_args(cls: type[C], args: argparse.Namespace, **overrides: Any) -
     data = {k: v for k, v in vars(args).items() if k in names}
     data.update(overrides)
     return config_from_dict(cls, data)
+
+
+def make_temp_dir(parent: str | os.PathLike, prefix: str, suffix: str = ".tmp") -> Path:
+    """A temporary folder inside ``parent`` (to be renamed into place) with the usual permissions.
+
+    ``tempfile.mkdtemp`` creates ``0700`` folders; outputs renamed from it would be private.
+    """
+    path = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=parent))
+    os.chmod(path, 0o777 & ~current_umask())
+    return path

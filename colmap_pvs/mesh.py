@@ -26,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 
+from .config import current_umask
 from .errors import ConfigError, MapFormatError
 from .io.ply import read_point_cloud, write_mesh
 
@@ -190,6 +191,7 @@ def mesh(config: MeshConfig) -> Path:
             pycolmap.poisson_meshing(str(src), tmp, options=options)
             if os.path.getsize(tmp) == 0:
                 raise MapFormatError(f"COLMAP's Poisson mesher wrote nothing for {str(src)!r}")
+            os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp made it private
             os.replace(tmp, out)
         finally:
             Path(tmp).unlink(missing_ok=True)

@@ -20,13 +20,12 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import atomic_write_bytes, save_config
+from .config import atomic_write_bytes, make_temp_dir, save_config
 from .errors import ConfigError, WorkspaceError
 
 logger = logging.getLogger(__name__)
@@ -221,7 +220,7 @@ def _run_sfm(
     prog.start("mapping")
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = config.num_threads
-    tmp = Path(tempfile.mkdtemp(prefix=".sparse.", suffix=".tmp", dir=root))
+    tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=root)
     try:
         models = pycolmap.incremental_mapping(str(db), str(image_dir), str(tmp), options=options)
         if not models:

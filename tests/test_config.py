@@ -94,3 +94,19 @@ def test_fixed_length_tuples():
     assert config_from_dict(Pair, {"lim": ["0.5", "3"]}).lim == (0.5, 3)
     with pytest.raises(ConfigError, match="lim"):
         config_from_dict(Pair, {"lim": [1.0]})
+
+
+def test_atomic_outputs_are_not_private(tmp_path):
+    import os
+    import stat
+
+    from colmap_pvs.config import atomic_write_bytes, make_temp_dir
+
+    mask = os.umask(0o022)
+    try:
+        f = atomic_write_bytes(tmp_path / "a.bin", b"x")
+        d = make_temp_dir(tmp_path, ".x.")
+    finally:
+        os.umask(mask)
+    assert stat.S_IMODE(f.stat().st_mode) == 0o644
+    assert stat.S_IMODE(d.stat().st_mode) == 0o755

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from colmap_pvs.cli.main import main
 
 import colmap_pvs.stereo as stereo_module
-from colmap_pvs.cli.main import main
 from colmap_pvs.errors import CheckpointError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
 from colmap_pvs.io.maps import fusion_intrinsics, read_depth_map, read_normal_map
+from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
@@ -144,3 +145,31 @@ def test_statue_runs_end_to_end(statue_workspace, tmp_path, tiny_checkpoint):
     # COLMAP's own fusion reads every map (random weights fuse few points; no crash is the check).
     fused = fuse(FuseConfig(workspace_path=ws, output_path=tmp_path / "fused.ply", method="colmap"))
     assert fused.output_path.is_file()
+
+
+def test_shipped_checkpoint_end_to_end_through_colmap_fusion(tmp_path):
+    """The default checkpoint on an unseen synthetic scene: accurate maps that COLMAP's fusion fuses."""
+    import open3d as o3d
+
+    from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
+
+    if not stereo_module.DEFAULT_CHECKPOINT.exists():
+        pytest.fail(f"the shipped checkpoint {stereo_module.DEFAULT_CHECKPOINT} is missing")
+    ws = tmp_path / "ws"
+    make_synthetic_workspace(ws, SyntheticWorkspaceConfig(seed=11, width=160, height=120, num_views=5))
+    res = run_stereo(StereoConfig(workspace_path=ws, num_views=4, max_image_size=160, threads=2))
+    assert len(res.processed) == 5
+    metrics = evaluate_depth(
+        EvaluateDepthConfig(workspace_path=ws, gt=ws / "gt" / "depth_maps", gt_pattern="{name}.npy")
+    )
+    assert metrics.pooled.coverage_pct > 80
+    assert metrics.pooled.rel_under_pct[0.05] > 70  # measured ~85 % at step 1500 of training
+    fused = fuse(FuseConfig(workspace_path=ws, output_path=tmp_path / "fused.ply", method="colmap"))
+    assert fused.num_points > 2000
+    mesh = o3d.io.read_triangle_mesh(str(ws / "gt" / "mesh.ply"))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    points = read_point_cloud(tmp_path / "fused.ply").xyz.astype(np.float32)
+    dist = scene.compute_distance(o3d.core.Tensor(points)).numpy()
+    extent = np.linalg.norm(points.max(0) - points.min(0))
+    assert np.median(dist) < 0.01 * extent

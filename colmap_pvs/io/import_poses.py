@@ -43,7 +43,6 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from typing import Literal
 
 import numpy as np
 
+from ..config import make_temp_dir
 from ..errors import ConfigError, WorkspaceError
 from .images import read_image_size
 
@@ -473,7 +473,7 @@ def import_poses(config: ImportPosesConfig) -> Path:
     if len(db_images) != len(cams):
         raise WorkspaceError(f"feature extraction stored {len(db_images)} of {len(cams)} images in {db_path}")
 
-    tmp = Path(tempfile.mkdtemp(prefix=".sparse.", suffix=".tmp", dir=out))
+    tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=out)
     try:
         result = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp))
         if result.num_points3D() == 0:

@@ -11,13 +11,13 @@ import logging
 import os
 import shutil
 import struct
-import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from ..config import make_temp_dir
 from ..errors import UnsupportedCameraError, WorkspaceError
 from ..types import PINHOLE_MODELS, Camera, Image, Points3D, SparseModel
 
@@ -341,7 +341,7 @@ def replace_directory(src: Path, dst: Path, *, replaceable: Iterable[str] | None
                 raise WorkspaceError(
                     f"refusing to overwrite {str(dst)!r}: it contains other files {extra[:10]}"
                 )
-        backup = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old.", dir=dst.parent))
+        backup = make_temp_dir(prefix=f".{dst.name}.old.", parent=dst.parent)
         backup.rmdir()
         os.replace(dst, backup)
         try:
@@ -365,7 +365,7 @@ def write_sparse_model(model: SparseModel, path: str | os.PathLike, *, binary: b
     path = Path(path)
     rec = _build_reconstruction(model)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    tmp = make_temp_dir(prefix=f".{path.name}.", suffix=".tmp", parent=path.parent)
     try:
         if binary:
             rec.write_binary(str(tmp))

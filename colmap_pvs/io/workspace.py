@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -29,7 +28,7 @@ from typing import Literal
 
 import pycolmap
 
-from ..config import atomic_write_bytes
+from ..config import atomic_write_bytes, make_temp_dir
 from ..errors import ConfigError, WorkspaceError
 from ..types import SparseModel
 from .images import read_image_size
@@ -228,7 +227,7 @@ def undistort(config: UndistortConfig) -> Workspace:
             f"{', '.join(missing[:10])}"
         )
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.", suffix=".tmp", dir=output.parent))
+    tmp = make_temp_dir(prefix=f".{output.name}.", suffix=".tmp", parent=output.parent)
     try:
         options = pycolmap.UndistortCameraOptions()
         options.max_image_size = int(config.max_image_size)

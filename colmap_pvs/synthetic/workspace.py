@@ -22,7 +22,6 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..config import atomic_write_bytes, config_to_dict, replace_config
+from ..config import atomic_write_bytes, config_to_dict, make_temp_dir, replace_config
 from ..errors import ConfigError, WorkspaceError
 from .cameras import CameraConfig
 from .dataset import render_scene
@@ -144,7 +143,7 @@ def make_synthetic_workspace(
     model = views.sparse_model(names)
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = make_temp_dir(prefix=f".{out.name}.", suffix=".tmp", parent=out.parent)
     try:
         for sub in (
             "images",
@@ -192,7 +191,7 @@ def make_synthetic_workspace(
         }
         atomic_write_bytes(tmp / "gt" / "scene.json", (json.dumps(summary, indent=2) + "\n").encode())
         if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
+            old = make_temp_dir(prefix=f".{out.name}.old.", parent=out.parent)
             old.rmdir()
             os.replace(out, old)
             os.replace(tmp, out)

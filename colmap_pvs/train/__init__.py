@@ -1,6 +1,17 @@
 """Training PVSNet on the CPU: config, losses, MVSNet-format data and the resumable trainer.
 
-Entry point: :func:`train` (``Trainer(config).train()``), used by the CLI.
+Entry point: :func:`train` (``Trainer(config).train()``), used by the CLI::
+
+    from colmap_pvs.train import TrainConfig, train
+
+    last = train(TrainConfig(output_dir=Path("runs/pvsnet"), steps=20000))
+    # runs/pvsnet/model.pt: the weights to ship; rerunning the same call resumes from last.pt
+
+- :mod:`.config`: :class:`TrainConfig` (optimizer, schedules, checkpoint/log/validation cadence);
+- :mod:`.losses`: the multi-output masked L1 loss (paper eq. 6-7) and depth metrics;
+- :mod:`.mvsnet_dataset`: DTU-training / BlendedMVS folders as the same sample dicts as
+  :class:`colmap_pvs.synthetic.SyntheticMVSDataset`;
+- :mod:`.trainer`: :class:`Trainer` (seeded, resumable, SIGINT/SIGTERM-safe).
 """
 
 from __future__ import annotations

@@ -108,7 +108,14 @@ class TrainConfig:
         },
     )
     num_workers: int = field(default=0, metadata={"help": "DataLoader worker processes (0 = main process)"})
-    torch_threads: int = field(default=2, metadata={"help": "torch intra-op threads (0 = torch's default)"})
+    torch_threads: int = field(
+        default=2,
+        metadata={
+            "help": "torch intra-op threads while training (0 = torch's default). On cores shared with "
+            "other jobs set OMP_WAIT_POLICY=PASSIVE in the environment, or use 1: spinning OpenMP threads "
+            "waiting on a descheduled peer made steps 10x slower there"
+        },
+    )
     checkpoint_every_seconds: float = field(
         default=300.0, metadata={"help": "write last.pt at least this often (seconds; 0 = off)"}
     )

@@ -36,10 +36,12 @@ checkpoint's config.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
 import math
+import os
 import random
 import signal
 import threading
@@ -322,8 +324,6 @@ class Trainer:
     ) -> None:
         self.config = config
         self.output_dir = Path(config.output_dir)
-        if config.torch_threads > 0:
-            torch.set_num_threads(config.torch_threads)
         self.device = torch.device("cpu")
         random.seed(config.seed)
         np.random.seed(config.seed % 2**32)
@@ -354,6 +354,20 @@ class Trainer:
             self._resume(self.last_path)
 
     # ----------------------------------------------------------------- setup
+
+    @contextlib.contextmanager
+    def torch_threads(self) -> Iterator[None]:
+        """Run the body with ``config.torch_threads`` intra-op threads, then restore the previous count.
+
+        :meth:`train` uses it; wrap direct :meth:`train_step` / :meth:`validate` calls in it too.
+        """
+        previous = torch.get_num_threads()
+        if self.config.torch_threads > 0:
+            torch.set_num_threads(self.config.torch_threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(previous)
 
     def _make_optimizer(self) -> torch.optim.Optimizer:
         cfg = self.config
@@ -451,6 +465,11 @@ class Trainer:
             sparse_depth=sparse,
         )
 
+    def _scales(self) -> tuple[int, ...] | None:
+        """Stride of each output (``PVSNetConfig.output_scales``) for GT downsampling."""
+        scales = getattr(self.config.model, "output_scales", None)
+        return tuple(scales) if scales is not None else None
+
     def _loss(self, out, batch: dict[str, torch.Tensor]):
         cfg = self.config
         return depth_loss(
@@ -462,6 +481,7 @@ class Trainer:
             gt_downsample=cfg.gt_downsample,
             normalize=cfg.loss_normalize,
             mask_depth_range=cfg.mask_depth_range,
+            scales=self._scales(),
         )
 
     def train_step(self, batch: dict[str, torch.Tensor]) -> tuple[float, list[float]]:
@@ -505,7 +525,7 @@ class Trainer:
         self.model.eval()
         loss_sum, parts_sum, count = 0.0, np.zeros(self.num_outputs), 0
         metric_sums: dict[str, float] = {}
-        metric_weights: dict[str, float] = {}
+        valid_sums: dict[str, float] = {}
         for batch in loader:
             batch = _to(batch, self.device)
             out = self._forward(batch)
@@ -520,17 +540,27 @@ class Trainer:
                 batch["depth_min"] if cfg.mask_depth_range else None,
                 batch["depth_max"] if cfg.mask_depth_range else None,
                 gt_downsample=cfg.gt_downsample,
+                scales=self._scales(),
             )
-            for k in range(self.num_outputs):
-                v = metrics[f"out{k}_valid"]
-                for name, value in metrics.items():
-                    if name.startswith(f"out{k}_") and not name.endswith("_valid") and v > 0:
-                        metric_sums[name] = metric_sums.get(name, 0.0) + value * v
-                        metric_weights[name] = metric_weights.get(name, 0.0) + v
+            # pixel-weighted means over the whole validation set
+            for name, value in metrics.items():
+                if name.endswith("_valid"):
+                    continue
+                v = metrics[name.split("_", 1)[0] + "_valid"]
+                metric_sums.setdefault(name, 0.0)
+                valid_sums.setdefault(name, 0.0)
+                if v > 0:
+                    metric_sums[name] += value * v
+                    valid_sums[name] += v
         self.model.train()
         result = {"val_loss": loss_sum / count}
         result.update({f"val_loss_out{k}": float(parts_sum[k] / count) for k in range(self.num_outputs)})
-        result.update({name: metric_sums[name] / metric_weights[name] for name in sorted(metric_sums)})
+        result.update(
+            {
+                n: (metric_sums[n] / valid_sums[n] if valid_sums[n] > 0 else math.nan)
+                for n in sorted(metric_sums)
+            }
+        )
         return result
 
     # ----------------------------------------------------------------- logs
@@ -661,7 +691,8 @@ class Trainer:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 handlers[sig] = signal.signal(sig, self._handle_signal)
         try:
-            self._loop(end)
+            with self.torch_threads():
+                self._loop(end)
         finally:
             for sig, old in handlers.items():
                 signal.signal(sig, old)
@@ -693,6 +724,12 @@ class Trainer:
             cfg.batch_size,
             torch.get_num_threads(),
         )
+        if torch.get_num_threads() > 1 and "OMP_WAIT_POLICY" not in os.environ:
+            logger.info(
+                "tip: on a machine whose cores are shared with other jobs, start with "
+                "OMP_WAIT_POLICY=PASSIVE "
+                "(or use torch_threads=1): spinning OpenMP threads can make steps 10x slower there"
+            )
         last_ckpt = time.monotonic()
         batches = iter(loader)
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not cfg.progress, desc="train", unit="step")
