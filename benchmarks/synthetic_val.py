@@ -86,7 +86,8 @@ def main() -> None:
     print("|" + "---|" * 9)
     for name, cfg in variants.items():
         m = PVSNet(cfg)
-        m.load_state_dict(state)
+        wanted = m.state_dict()
+        m.load_state_dict({k: v for k, v in state.items() if k in wanted})  # visibility off: no vis net
         m.eval()
         r = evaluate(m, ds, args.samples, args.min_confidence)
         print(f"| {name} | {r['mae']:.4f} | {r['absrel']:.4f} | {r['pct1']:.1f} | {r['pct2']:.1f} | "
