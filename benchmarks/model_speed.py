@@ -32,7 +32,8 @@ if "--omp_passive" in sys.argv:  # must happen before the OpenMP runtime starts 
 import torch  # noqa: E402
 
 from colmap_pvs.config import add_config_arguments, config_from_args  # noqa: E402
-from colmap_pvs.model import PVSNet, PVSNetConfig, pvsnet_loss  # noqa: E402
+from colmap_pvs.model import PVSNet, PVSNetConfig  # noqa: E402
+from colmap_pvs.train.losses import depth_loss  # noqa: E402
 
 
 def make_inputs(batch: int, views: int, height: int, width: int, seed: int = 0):
@@ -108,7 +109,8 @@ def main() -> None:
         def step() -> None:
             opt.zero_grad(set_to_none=True)
             out = model(*inputs)
-            loss, _ = pvsnet_loss(out, gt, inputs[3], inputs[4], config.loss_weights)
+            loss = depth_loss(out.depths, gt, inputs[3], inputs[4], config.loss_weights,
+                              scales=config.output_scales).total
             loss.backward()
             opt.step()
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
+
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.train import TrainConfig
 
@@ -31,7 +31,8 @@ def test_unknown_flag_is_rejected():
 
 def test_config_file_with_nested_values_and_flag_override(tmp_path):
     path = tmp_path / "train.json"
-    path.write_text(json.dumps({"output_dir": str(tmp_path / "run"), "steps": 7, "model": {"visibility": False}}))
+    data = {"output_dir": str(tmp_path / "run"), "steps": 7, "model": {"visibility": False}}
+    path.write_text(json.dumps(data))
     args = build_parser().parse_args(["train", "--config_file", str(path), "--steps", "9"])
     cfg = _build_config(TrainConfig, args)
     assert cfg.steps == 9 and cfg.model.visibility is False and cfg.output_dir == tmp_path / "run"

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from colmap_pvs.config import replace_config
-from colmap_pvs.model import PVSNet, PVSNetConfig, pvsnet_loss
+from colmap_pvs.model import PVSNet, PVSNetConfig
 from colmap_pvs.model.planes import render_plane
+from colmap_pvs.train.losses import depth_loss
 
 H, W = 48, 64
 
@@ -57,7 +58,8 @@ def test_overfit_single_sample():
     for _ in range(25):
         opt.zero_grad(set_to_none=True)
         out = model(*inputs)
-        loss, _ = pvsnet_loss(out, depth, inputs[3], inputs[4], cfg.loss_weights)
+        loss = depth_loss(out.depths, depth, inputs[3], inputs[4], cfg.loss_weights,
+                          scales=cfg.output_scales).total
         loss.backward()
         opt.step()
         losses.append(loss.item())

@@ -83,15 +83,14 @@ def test_metrics() -> None:
     assert empty["valid"] == 0 and empty["mae"] != empty["mae"]
 
 
-def test_padded_sizes_match_the_network_and_model_helper() -> None:
-    from colmap_pvs.model import downsample_depth as model_downsample
-
+def test_padded_sizes_match_the_network() -> None:
     gt = torch.arange(1.0, 31.0).reshape(1, 6, 5)  # outputs of a stride-4 net: ceil(6/4) x ceil(5/4)
     out = downsample_depth(gt, (2, 2), "min", factor=4)
     assert out.tolist() == [[[1.0, 5.0], [21.0, 25.0]]]  # padded zeros are invalid, not minima
     near = downsample_depth(gt, (2, 2), "nearest", factor=4)
     assert near.tolist() == [[[13.0, 0.0], [0.0, 0.0]]]  # centre pixels (2, 2), (2, 6), ... padded = invalid
     gt16 = torch.arange(1.0, 16 * 12 + 1).reshape(1, 12, 16)
-    assert torch.equal(downsample_depth(gt16, (3, 4), "nearest"), model_downsample(gt16, (3, 4)))
+    # nearest: the pixel just below-right of each 4x4 block centre
+    assert torch.equal(downsample_depth(gt16, (3, 4), "nearest"), gt16[:, 2::4, 2::4])
     with pytest.raises(ShapeError, match="not ceil"):
         downsample_depth(gt, (2, 2), factor=2)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 from .config import NETWORK_STRIDE, PVSNetConfig
-from .loss import downsample_depth, masked_l1, pvsnet_loss
 from .pvsnet import PVSNet, PVSNetOutput
 
 __all__ = [
@@ -13,9 +12,6 @@ __all__ = [
     "PVSNet",
     "PVSNetConfig",
     "PVSNetOutput",
-    "downsample_depth",
     "load_checkpoint",
-    "masked_l1",
-    "pvsnet_loss",
     "save_checkpoint",
 ]

@@ -23,7 +23,7 @@ The full-resolution GT depth ``[B, H, W]`` is brought to each output's ``[h, w]`
   pixel is used once, and the minimum is the front-most surface, the one visible at a
   depth edge, so no depth between two surfaces is ever invented.
 - ``"nearest"``: the GT pixel nearest to the output pixel centre (for even ``f`` the one
-  just below-right of it), as :func:`colmap_pvs.model.downsample_depth` does.
+  just below-right of it), as the network's nearest-neighbour downsampling does.
 
 Sizes that are not ``ceil(H / f)`` for an integer ``f`` fall back to nearest resampling.
 Images whose size is not a multiple of the stride are handled like the network does:
@@ -73,7 +73,7 @@ def downsample_depth(
     computed on the image padded bottom/right to a multiple of its stride), the GT is
     zero-padded the same way and reduced per ``f x g`` block: ``"min"`` takes the minimum
     valid depth, ``"nearest"`` the pixel ``(f*row + f//2, g*col + g//2)``, nearest to the
-    block centre (the same pixel as :func:`colmap_pvs.model.downsample_depth`). Other sizes
+    block centre (the same pixel as the network's nearest-neighbour downsampling). Other sizes
     use ``F.interpolate(mode="nearest-exact")``. ``factor`` is the output's stride ``f = g``
     (``PVSNetConfig.output_scales``); without it ``f = ceil(H / h)``, ``g = ceil(W / w)``,
     exact when the image size is a multiple of the stride. Returns ``depth`` itself when
