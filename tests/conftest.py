@@ -70,3 +70,14 @@ def make_tiny_checkpoint(path: Path, **overrides) -> Path:
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Path of a tiny random checkpoint, built once per session."""
     return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Run a test on one torch thread (tiny tensors: more threads only add synchronisation cost)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -9,14 +9,7 @@ from colmap_pvs.config import config_to_dict, replace_config
 from colmap_pvs.errors import CheckpointError
 from colmap_pvs.model import CHECKPOINT_FORMAT, PVSNet, PVSNetConfig, load_checkpoint, save_checkpoint
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: extra threads only add synchronisation cost (and the CPU is shared)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 TINY = PVSNetConfig(

@@ -13,14 +13,7 @@ from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ShapeError
 from colmap_pvs.model import PVSNet, PVSNetConfig, PVSNetOutput
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: extra threads only add synchronisation cost (and the CPU is shared)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 TINY = PVSNetConfig(
