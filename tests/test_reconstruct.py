@@ -3,38 +3,18 @@ slow one runs SfM on ``../shared/data/fern-images`` (stopping after mapping)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 from colmap_pvs.cli.main import main
+from conftest import make_tiny_checkpoint
 
 from colmap_pvs.errors import CheckpointError, WorkspaceError
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.reconstruct import ReconstructConfig, reconstruct
 
 
-def _tiny_checkpoint(path: Path) -> Path:
-    import torch
-
-    from colmap_pvs.model import PVSNet, PVSNetConfig, save_checkpoint
-
-    torch.manual_seed(0)
-    config = PVSNetConfig(
-        feature_channels=(8, 8, 8),
-        num_stages=1,
-        planes_per_stage=(8,),
-        groups_per_stage=(4,),
-        stage_channels=(),
-        visibility_channels=4,
-        regularization_channels=4,
-        loss_weights=(0.5, 0.5, 0.7),
-    )
-    return save_checkpoint(path, PVSNet(config))
-
-
 def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, capsys):
     ws = analytic_scene["root"]
-    ckpt = _tiny_checkpoint(tmp_path / "tiny.pt")
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
     out = tmp_path / "out"
     argv = [
         "reconstruct",
