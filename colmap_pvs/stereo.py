@@ -134,9 +134,11 @@ def _sparse_depth_map(model: SparseModel, image: Image, K: np.ndarray, height: i
     out = np.zeros((height, width), dtype=np.float32)
     if image.point3D_ids.size == 0:
         return out
-    rows = np.searchsorted(model.points.ids, image.point3D_ids)
-    rows = rows[(rows < len(model.points)) & (model.points.ids[rows.clip(max=len(model.points) - 1)]
-                                               == image.point3D_ids)]
+    ids = model.points.ids
+    order = np.argsort(ids, kind="stable")
+    pos = np.searchsorted(ids, image.point3D_ids, sorter=order).clip(max=len(ids) - 1)
+    rows = order[pos]
+    rows = rows[ids[rows] == image.point3D_ids]
     x = model.points.xyz[rows] @ image.R.T + image.t
     x = x[x[:, 2] > 0]
     uvw = x @ K.T

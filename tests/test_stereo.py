@@ -173,3 +173,20 @@ def test_shipped_checkpoint_end_to_end_through_colmap_fusion(tmp_path):
     dist = scene.compute_distance(o3d.core.Tensor(points)).numpy()
     extent = np.linalg.norm(points.max(0) - points.min(0))
     assert np.median(dist) < 0.01 * extent
+
+
+def test_sparse_hints_follow_point_ids_in_any_order():
+    from colmap_pvs.types import Camera, Image, Points3D, SparseModel
+
+    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    xyz = np.array([[0.0, 0.0, 2.0], [0.2, 0.1, 3.0], [-0.1, 0.05, 4.0]])
+    ids = np.array([30, 10, 20])  # not sorted
+    cam = Camera(1, "PINHOLE", 40, 30, K, np.array([50.0, 50.0, 20, 15]))
+    img = Image(1, "a.png", 1, np.hstack([np.eye(3), np.zeros((3, 1))]), np.array([10, 20, 30]))
+    pts = Points3D(ids, xyz, np.zeros((3, 3), np.uint8), np.zeros(3), np.arange(4), np.ones(3, np.int64))
+    model = SparseModel({1: cam}, {1: img}, pts, {"a.png": 1})
+    hints = stereo_module._sparse_depth_map(model, img, K, 30, 40)
+    for p in xyz:
+        u, v = (K @ p)[:2] / p[2]
+        assert hints[int(v), int(u)] == pytest.approx(p[2])
+    assert (hints > 0).sum() == 3
