@@ -41,8 +41,3 @@ def to_homogeneous(cam_from_world: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :] = np.asarray(cam_from_world, dtype=np.float64)[:3, :]
     return T
-
-
-def relative_pose(src_from_world: np.ndarray, ref_from_world: np.ndarray) -> np.ndarray:
-    """``[4, 4]`` transform taking reference-camera coordinates to source-camera coordinates."""
-    return to_homogeneous(src_from_world) @ np.linalg.inv(to_homogeneous(ref_from_world))

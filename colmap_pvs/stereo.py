@@ -129,13 +129,23 @@ def choose_references(ws: Workspace, model: SparseModel) -> dict[str, object]:
     return {img.name: None for img in sorted(model.images.values(), key=lambda im: im.name)}
 
 
-def _sparse_depth_map(model: SparseModel, image: Image, K: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``[H, W]`` depth of the image's own sparse points projected with ``K`` (0 elsewhere)."""
+def _sparse_depth_map(
+    model: SparseModel,
+    image: Image,
+    K: np.ndarray,
+    height: int,
+    width: int,
+    id_order: np.ndarray | None = None,
+) -> np.ndarray:
+    """``[H, W]`` depth of the image's own sparse points projected with ``K`` (0 elsewhere).
+
+    ``id_order`` is ``np.argsort(model.points.ids)``; pass it to avoid re-sorting per image.
+    """
     out = np.zeros((height, width), dtype=np.float32)
     if image.point3D_ids.size == 0:
         return out
     ids = model.points.ids
-    order = np.argsort(ids, kind="stable")
+    order = np.argsort(ids, kind="stable") if id_order is None else id_order
     pos = np.searchsorted(ids, image.point3D_ids, sorter=order).clip(max=len(ids) - 1)
     rows = order[pos]
     rows = rows[ids[rows] == image.point3D_ids]
@@ -246,6 +256,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     net, ckpt_path, _meta = load_stereo_model(config, device)
     selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
     refs = choose_references(ws, model_sparse)
+    id_order = np.argsort(model_sparse.points.ids, kind="stable")
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ckpt_path),
                 model_config=net.config)
     result = StereoResult(workspace=ws)
@@ -278,7 +289,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
         h, w = images.shape[-2:]
         ref = model_sparse.image_by_name(name)
-        sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w)
+        sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
         try:
             depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
         except (RuntimeError, MemoryError) as exc:

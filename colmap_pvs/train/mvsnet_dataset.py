@@ -101,6 +101,7 @@ from torch.utils.data import Dataset
 
 from ..config import atomic_write_bytes
 from ..errors import ColmapPVSError, ConfigError
+from ..geometry import scale_intrinsics
 from ..views import best_and_worst
 from .losses import downsample_depth
 
@@ -615,7 +616,7 @@ class MVSNetDataset(Dataset):
         K[0, 2] += self.config.pixel_center_offset
         K[1, 2] += self.config.pixel_center_offset
         s = float(self.config.resolved("intrinsics_scale"))
-        K = np.diag([s, s, 1.0]) @ K
+        K = scale_intrinsics(K, s, s)
         h, w = bgr.shape[:2]
         if self.config.image_size is not None:
             W, H = self.config.image_size
