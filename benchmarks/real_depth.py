@@ -14,12 +14,17 @@ Steps (everything is cached or rebuilt under ``--work_dir``):
    - ``disturbed``: N=``--disturb_n`` where ``--disturb_count`` of the best sources are replaced
      by unrelated frames far away in the sequence (index distance >= 1/3 of the sequence, lowest
      view score first; on video they see other parts of the room);
+   - ``sparse guidance off`` / ``sparse prior off``: N=``--disturb_n`` with that parameter-free
+     switch of the checkpoint turned off (only when the checkpoint has it on);
    - ``mean-agg`` (ablation): the same sources as ``N=--disturb_n`` (and as ``disturbed``) with
      pixelwise visibility off: the same checkpoint with ``PVSNetConfig.visibility`` flipped
      (written to ``WORK/checkpoints``), or ``--ablation_checkpoint`` (a separately trained one).
 3. ``run_stereo`` for every setting, each in its own subprocess (peak RSS per setting).
-4. Baseline: linear interpolation of the depths of the reference's own sparse points over
-   their Delaunay triangulation in the image (``cv2.Subdiv2D``; no prediction outside the hull).
+4. Baselines: linear interpolation of the depths of the reference's own sparse points over
+   their Delaunay triangulation in the image (``cv2.Subdiv2D``; no prediction outside the hull),
+   and the push-pull fill of the same points over the whole image (the network's sparse prior).
+   Every setting is also scored on the Delaunay baseline's pixels (``AbsRel (hull)``,
+   ``% <5% (hull)``), the fair comparison with it.
 5. ``colmap_pvs.evaluate.evaluate_depth`` against the GT (uint16 millimetres, ``gt_scale=0.001``),
    at the prediction's resolution (GT resized with nearest). Prints ONE table and appends it to
    ``benchmarks/RESULTS.md`` with the git commit, the date and the checkpoint's sha256
@@ -151,23 +156,24 @@ def make_ablation_checkpoint(checkpoint: Path, out: Path) -> Path:
     )
 
 
-def make_guidance_off_checkpoint(checkpoint: Path, out: Path) -> Path | None:
-    """The same weights with sparse guidance off (``None`` if the checkpoint has it off already)."""
+def make_switch_off_checkpoint(checkpoint: Path, out: Path, switch: str) -> Path | None:
+    """The same weights with the boolean ``PVSNetConfig`` field ``switch`` off (``None`` if it is off
+    already): e.g. ``sparse_guidance`` or ``sparse_prior``, which add no parameters."""
     from colmap_pvs.config import replace_config
     from colmap_pvs.evaluate import file_sha256
     from colmap_pvs.model import PVSNet, load_checkpoint, save_checkpoint
 
     model, meta = load_checkpoint(checkpoint, map_location="cpu")
-    if not model.config.sparse_guidance:
+    if not getattr(model.config, switch):
         return None
-    off = PVSNet(replace_config(model.config, sparse_guidance=False))
+    off = PVSNet(replace_config(model.config, **{switch: False}))
     off.load_state_dict(model.state_dict(), strict=True)
     return save_checkpoint(
         out,
         off,
         step=int(meta.get("step", 0)),
         extra={"derived_from": str(checkpoint), "derived_from_sha256": file_sha256(checkpoint),
-               "note": "sparse guidance switched off"},
+               "note": f"{switch} switched off"},
     )
 
 
@@ -227,6 +233,22 @@ def interpolate_sparse_depth(uv: np.ndarray, depth: np.ndarray, height: int, wid
     return out
 
 
+def push_pull_depth(uv: np.ndarray, depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Every pixel filled from the sparse depths by the push-pull interpolation (inverse depth) of
+    ``colmap_pvs.model.cost.densify_inverse_depth``: the sparse prior the network starts from."""
+    import torch
+
+    from colmap_pvs.model.cost import densify_inverse_depth
+
+    hints = np.zeros((height, width), np.float32)
+    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    ok = (col >= 0) & (col < width) & (row >= 0) & (row < height) & (depth > 0)
+    order = np.argsort(-depth[ok])  # nearest written last
+    hints[row[ok][order], col[ok][order]] = depth[ok][order]
+    inv = densify_inverse_depth(torch.from_numpy(hints)[None, None])[0, 0].numpy()
+    return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0).astype(np.float32)
+
+
 def baseline_worker(spec: dict) -> dict:
     """Write sparse-interpolation depth maps for ``spec['refs']`` into the workspace."""
     from colmap_pvs.geometry import scale_intrinsics
@@ -250,7 +272,10 @@ def baseline_worker(spec: dict) -> dict:
         x = model.points.xyz[rows] @ im.R.T + im.t
         x = x[x[:, 2] > 0]
         uvw = x @ K.T
-        depth = interpolate_sparse_depth(uvw[:, :2] / uvw[:, 2:], x[:, 2], h, w)
+        if spec.get("method", "delaunay") == "delaunay":
+            depth = interpolate_sparse_depth(uvw[:, :2] / uvw[:, 2:], x[:, 2], h, w)
+        else:  # push-pull fill of the hints (the network's sparse prior, at full resolution)
+            depth = push_pull_depth(uvw[:, :2] / uvw[:, 2:], x[:, 2], h, w)
         write_depth_map(ws.depth_map_path(name, "geometric"), depth)
         times.append(time.perf_counter() - start)
     return {
@@ -315,6 +340,37 @@ def _worker_main(kind: str, spec_path: str, out_path: str) -> int:
 
 # --------------------------------------------------------------------------- main
 
+BASELINES = {
+    "delaunay": "sparse interpolation (baseline)",
+    "pushpull": "sparse push-pull fill (baseline)",
+}
+
+
+def errors_on_mask(ws: Path, mask_ws: Path, gt_dir: Path, refs: list[str]) -> tuple[float, float]:
+    """Pooled AbsRel and % under 5 % of ``ws``'s depth maps over the pixels where ``mask_ws`` (the
+    Delaunay baseline) also has a prediction and the GT is valid; NaN when there are none."""
+    import cv2
+
+    from colmap_pvs.io.maps import read_depth_map
+
+    errs = []
+    for name in refs:
+        pred_path = ws / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+        mask_path = mask_ws / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+        gt_path = gt_dir / f"{Path(name).stem}.png"
+        if not (pred_path.is_file() and mask_path.is_file() and gt_path.is_file()):
+            continue
+        pred, mask = read_depth_map(pred_path), read_depth_map(mask_path)
+        gt = cv2.imread(str(gt_path), cv2.IMREAD_UNCHANGED).astype(np.float32) * 0.001
+        gt = cv2.resize(gt, pred.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        ok = (gt > 0) & (pred > 0) & (mask > 0)
+        errs.append(np.abs(pred[ok] - gt[ok]) / gt[ok])
+    e = np.concatenate(errs) if errs else np.zeros(0)
+    if e.size == 0:
+        return float("nan"), float("nan")
+    return float(e.mean()), float(100.0 * np.mean(e < 0.05))
+
+
 
 def markdown_table(rows: list[dict]) -> str:
     header = [
@@ -325,6 +381,8 @@ def markdown_table(rows: list[dict]) -> str:
         "AbsRel",
         "% <2% rel",
         "% <5% rel",
+        "AbsRel (hull)",
+        "% <5% (hull)",
         "s / image",
         "peak RSS (MB)",
     ]
@@ -346,6 +404,8 @@ def markdown_table(rows: list[dict]) -> str:
                     f(p.absrel, ".4f"),
                     f(p.rel_under_pct[0.02], ".1f"),
                     f(p.rel_under_pct[0.05], ".1f"),
+                    f(r["hull"][0], ".4f"),
+                    f(r["hull"][1], ".1f"),
                     f(r["seconds_per_image"], ".2f"),
                     f(r["peak_rss_mb"], ".0f"),
                 ]
@@ -373,6 +433,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="hololens-dev folder")
     p.add_argument("--work_dir", type=Path, default=DEFAULT_WORK, help="cache and outputs")
     p.add_argument("--stride", type=int, default=16, help="every STRIDE-th frame is a reference")
+    p.add_argument(
+        "--offset",
+        type=int,
+        default=None,
+        help="index of the first reference frame (default STRIDE // 2); --stride 3 --offset 0 gives "
+        "frames 3, 6, ..., 180, the references of the PatchmatchNet numbers in issue #6",
+    )
     p.add_argument("--max_image_size", type=int, default=320, help="inference (and evaluation) size")
     p.add_argument(
         "--views", type=int, nargs="+", default=[3, 5, 7, 11], help="N values (reference included)"
@@ -409,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     model = read_sparse_model(sparse)
     names = sorted(model.image_ids_by_name)
     selection = select_views(model, ViewSelectionConfig(num_views=max([*args.views, args.disturb_n])))
-    refs = [n for n in names[args.stride // 2 :: args.stride] if n in selection.references]
+    offset = args.stride // 2 if args.offset is None else args.offset
+    refs = [n for n in names[offset :: args.stride] if n in selection.references]
     print(f"[refs] {len(refs)} reference frames (every {args.stride}th): {', '.join(refs)}", flush=True)
 
     ckpt = args.checkpoint.resolve()
@@ -437,12 +505,15 @@ def main(argv: list[str] | None = None) -> int:
         disturbed[r] = keep + far_sources(names.index(r), names, row, args.disturb_count)
     clean = {r: ranked(r)[: n_d - 1] for r in refs}
     settings.append((f"PVSNet N={n_d}, {args.disturb_count} disturbing", n_d, ckpt, disturbed))
-    no_guidance = make_guidance_off_checkpoint(ckpt, work / "checkpoints" / f"{ckpt.stem}.guidance_off.pt")
-    if no_guidance is not None:
-        settings.append((f"PVSNet N={n_d}, sparse guidance off", n_d, no_guidance, clean))
+    for switch, what in (("sparse_guidance", "sparse guidance"), ("sparse_prior", "sparse prior")):
+        off = make_switch_off_checkpoint(ckpt, work / "checkpoints" / f"{ckpt.stem}.{switch}_off.pt", switch)
+        if off is not None:
+            settings.append((f"PVSNet N={n_d}, {what} off", n_d, off, clean))
     settings.append((f"mean-agg N={n_d} (visibility off)", n_d, ablation_ckpt, clean))
     settings.append((f"mean-agg N={n_d}, {args.disturb_count} disturbing", n_d, ablation_ckpt, disturbed))
-    settings.append(("sparse interpolation (baseline)", 0, None, {r: [] for r in refs}))
+    no_sources = {r: [] for r in refs}
+    settings.append((BASELINES["delaunay"], 0, None, no_sources))
+    settings.append((BASELINES["pushpull"], 0, None, no_sources))
 
     rows = []
     for i, (label, n, checkpoint, sources) in enumerate(settings):
@@ -459,7 +530,13 @@ def main(argv: list[str] | None = None) -> int:
             }
             result = run_worker("stereo", spec, work / "logs" / f"{slug}.log")
         else:
-            spec = {"workspace": str(ws), "refs": refs, "max_image_size": args.max_image_size}
+            method = next(k for k, v in BASELINES.items() if v == label)
+            spec = {
+                "workspace": str(ws),
+                "refs": refs,
+                "max_image_size": args.max_image_size,
+                "method": method,
+            }
             result = run_worker("baseline", spec, work / "logs" / f"{slug}.log")
         metrics = evaluate_depth(
             EvaluateDepthConfig(
@@ -471,8 +548,11 @@ def main(argv: list[str] | None = None) -> int:
                 output_path=ws / "metrics.json",
             )
         )
+        if checkpoint is None and label == BASELINES["delaunay"]:
+            hull_ws = ws
         rows.append(
             {
+                "workspace": ws,
                 "setting": label,
                 "refs": len(refs),
                 "evaluated": len(result["processed"]),
@@ -492,6 +572,8 @@ def main(argv: list[str] | None = None) -> int:
         (work / "sources").mkdir(exist_ok=True)
         (work / "sources" / f"{slug}.json").write_text(json.dumps(sources, indent=1))
 
+    for r in rows:  # errors on the pixels that the Delaunay baseline covers (its convex hull)
+        r["hull"] = errors_on_mask(r["workspace"], hull_ws, args.data / "depth", refs)
     total = time.perf_counter() - t_start
     table = markdown_table(rows)
     import torch

@@ -3,9 +3,9 @@
     python benchmarks/synthetic_val.py --checkpoint colmap_pvs/weights/pvsnet_default.pt
 
 Held-out scenes come from a seed far from the training seeds (``--seed``). Prints one row per
-variant: the checkpoint as trained, sparse guidance off/on and visibility off (mean aggregation),
-with MAE (scene units), AbsRel, % of pixels under 1/2/5 % relative error (all valid GT pixels,
-final full-resolution depth) and coverage / AbsRel after the stereo step's confidence filter.
+variant: the checkpoint as trained, sparse guidance off/on, sparse prior off/on and visibility off
+(mean aggregation), with MAE (scene units), AbsRel, % of pixels under 1/2/5 % relative error (all
+valid GT pixels, final full-resolution depth) and coverage / AbsRel after the stereo step's confidence filter.
 """
 
 from __future__ import annotations
@@ -75,6 +75,8 @@ def main() -> None:
         "as trained": model.config,
         "sparse guidance off": replace_config(model.config, sparse_guidance=False),
         "sparse guidance on": replace_config(model.config, sparse_guidance=True),
+        "sparse prior off": replace_config(model.config, sparse_prior=False),
+        "sparse prior on": replace_config(model.config, sparse_prior=True),
         "visibility off (mean)": replace_config(model.config, visibility=False),
     }
     print(f"checkpoint {args.checkpoint} (step {meta.get('step')}), {args.samples} held-out samples, "

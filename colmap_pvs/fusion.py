@@ -71,7 +71,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "parse_colmap_options"]
 
 DEFAULT_OUTPUT_NAME = "fused.ply"
-CONFIDENCE_DIR = "confidence_maps"
 CONFIG_SUFFIX = ".fuse_config.json"
 
 #: Our defaults for ``method="colmap"`` (every other option keeps COLMAP's value). Learned maps are
@@ -322,29 +321,18 @@ def _images_bin_order(path: Path) -> list[int]:
 
 
 def _sources_for(ws: Workspace, model: SparseModel, names: list[str], num: int) -> dict[str, list[str]]:
-    """Source views of every reference: ``patch-match.cfg`` if present, else view selection."""
-    from .views import ViewSelectionConfig, resolve_sources, select_views
+    """Source views of every reference as ``stereo`` chose them (``patch-match.cfg`` if present, else
+    view selection), at most ``num`` each."""
+    from .views import ViewSelectionConfig, reference_sources, select_views
 
-    selection = None
-
-    def get_selection():
-        nonlocal selection
-        if selection is None:
-            selection = select_views(model, ViewSelectionConfig(num_views=num + 1))
-        return selection
-
-    out: dict[str, list[str]] = {}
+    selection = select_views(model, ViewSelectionConfig(num_views=num + 1))
     specs = read_patch_match_cfg(ws.patch_match_cfg) if ws.patch_match_cfg.is_file() else {}
+    out: dict[str, list[str]] = {}
     for name in names:
-        spec = specs.get(name)
-        if spec is not None:
-            if spec.mode == "explicit":
-                srcs = [s for s in spec.names if s in model.image_ids_by_name]
-            else:
-                srcs = list(resolve_sources(get_selection(), name, spec.mode, spec.names, spec.num))
-        else:
-            srcs = list(get_selection().sources(name))
-        out[name] = srcs[:num]
+        if name not in selection.references and specs.get(name) is None:
+            out[name] = []  # not selectable (e.g. no sparse points): stereo skipped it too
+            continue
+        out[name] = list(reference_sources(selection, name, specs.get(name), num))[:num]
     return out
 
 
@@ -464,7 +452,7 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         depth = np.where(np.isfinite(depth) & (np.abs(normals).sum(axis=2) > 0), depth, 0.0).astype(
             np.float32
         )
-        conf_path = ws.stereo_dir / CONFIDENCE_DIR / f"{name}.bin"
+        conf_path = ws.confidence_map_path(name)
         if config.min_confidence > 0 and conf_path.is_file():
             conf = read_array(conf_path)
             if conf.shape[:2] != (h, w):

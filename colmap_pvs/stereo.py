@@ -31,13 +31,14 @@ from .io.maps import (
     save_depth_preview,
     save_normal_preview,
     save_scalar_preview,
+    write_array,
     write_depth_map,
     write_normal_map,
 )
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
 from .normals import depth_to_normals
 from .types import Image, SparseModel
-from .views import ViewSelection, ViewSelectionConfig, resolve_sources, select_views
+from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +66,13 @@ class StereoConfig:
     sparse_guidance: Literal["checkpoint", "on", "off"] = field(
         default="checkpoint",
         metadata={"help": "modulate the cost volume around projected sparse points (Guided Stereo)"},
+    )
+    sparse_prior: Literal["checkpoint", "on", "off"] = field(
+        default="checkpoint",
+        metadata={
+            "help": "centre the coarse depth hypotheses on the interpolated sparse points "
+            "(off: the image's global depth range everywhere)"
+        },
     )
     previews: bool = field(
         default=False, metadata={"help": "write PNG previews of depth, normals, confidence, visibility"}
@@ -105,13 +113,17 @@ def load_stereo_model(config: StereoConfig, device: torch.device):
             "(random weights never produce maps)"
         )
     model, meta = load_checkpoint(path, map_location="cpu")
-    if config.sparse_guidance != "checkpoint":
-        want = config.sparse_guidance == "on"
-        if model.config.sparse_guidance != want:
-            new_cfg = replace_config(model.config, sparse_guidance=want)
-            state = model.state_dict()
-            model = PVSNet(new_cfg)
-            model.load_state_dict(state)
+    # Switches that add no parameters can be flipped on a trained model.
+    requested = {"sparse_guidance": config.sparse_guidance, "sparse_prior": config.sparse_prior}
+    changes = {
+        name: value == "on"
+        for name, value in requested.items()
+        if value != "checkpoint" and getattr(model.config, name) != (value == "on")
+    }
+    if changes:
+        state = model.state_dict()
+        model = PVSNet(replace_config(model.config, **changes))
+        model.load_state_dict(state)
     model.eval().to(device)
     return model, path, meta
 
@@ -199,8 +211,11 @@ def _is_done(ws: Workspace, name: str) -> bool:
     return ws.depth_map_path(name, "geometric").exists() and ws.normal_map_path(name, "geometric").exists()
 
 
-def _write_outputs(ws: Workspace, name: str, depth: np.ndarray, normals: np.ndarray) -> None:
-    # Normals first, the geometric depth map last: it marks the image as done.
+def _write_outputs(
+    ws: Workspace, name: str, depth: np.ndarray, normals: np.ndarray, confidence: np.ndarray
+) -> None:
+    # Confidence and normals first, the geometric depth map last: it marks the image as done.
+    write_array(ws.confidence_map_path(name), confidence.astype(np.float32))
     for kind in ("photometric", "geometric"):
         write_normal_map(ws.normal_map_path(name, kind), normals)
     write_depth_map(ws.depth_map_path(name, "photometric"), depth)
@@ -272,13 +287,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
             logger.warning("skipping %s: %s", name, reason)
             result.skipped[name] = reason
             continue
-        if spec is None:
-            sources = resolve_sources(selection, name, "auto", num=config.num_views - 1)
-        else:
-            sources = resolve_sources(selection, name, spec.mode, names=spec.names, num=spec.num)
-            if spec.mode != "explicit":
-                sources = sources[: config.num_views - 1]
-        sources = list(sources)
+        sources = list(reference_sources(selection, name, spec, config.num_views - 1))
         if len(sources) < config.min_sources:
             reason = f"only {len(sources)} source view(s) share points with it (need {config.min_sources})"
             logger.warning("skipping %s: %s", name, reason)
@@ -302,7 +311,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         depth = np.where((conf >= config.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
         normals = depth_to_normals(depth, Ks[0])
         depth[~np.any(normals != 0, axis=-1)] = 0.0
-        _write_outputs(ws, name, depth, normals)
+        _write_outputs(ws, name, depth, normals, conf)
         if config.previews:
             _write_previews(ws, name, depth, normals, conf, vis, sources, entry.depth_range)
         times.append(time.perf_counter() - start)

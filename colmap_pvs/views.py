@@ -52,6 +52,7 @@ __all__ = [
     "compute_view_scores",
     "format_selection_table",
     "rank_sources",
+    "reference_sources",
     "resolve_sources",
     "select_views",
 ]
@@ -103,10 +104,11 @@ class ViewSelectionConfig:
         metadata={"help": "lower and upper percentiles (0-100) of the sparse points' depths, per image"},
     )
     depth_margin: float = field(
-        default=0.1,
+        default=0.25,
         metadata={
             "help": "relative margin m in [0, 1) applied to the percentile range [lo, hi]: "
-            "depth range = [lo*(1-m), hi*(1+m)]"
+            "depth range = [lo*(1-m), hi*(1+m)] (0.25 and the 1/99 percentiles are what COLMAP's "
+            "own dense workspace uses)"
         },
     )
     min_depth_ratio: float = field(
@@ -599,6 +601,22 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
         skipped=tuple(skipped),
         config=config,
     )
+
+
+def reference_sources(
+    selection: ViewSelection, ref_name: str, spec: object | None, num: int
+) -> tuple[str, ...]:
+    """Source images of ``ref_name`` as ``stereo`` and ``fuse`` use them.
+
+    ``spec`` is the reference's ``patch-match.cfg`` entry (``colmap_pvs.io.workspace.SourceSpec``:
+    ``mode``, ``names``, ``num``) or ``None`` (no file: the ``num`` best by view score). An
+    ``__auto__``/``__all__`` entry is capped at ``num``; an explicit list is used as written.
+    Raises what :func:`resolve_sources` raises.
+    """
+    if spec is None:
+        return resolve_sources(selection, ref_name, "auto", num=num)
+    sources = resolve_sources(selection, ref_name, spec.mode, names=spec.names, num=spec.num)
+    return sources if spec.mode == "explicit" else sources[:num]
 
 
 def resolve_sources(

@@ -8,8 +8,18 @@ import torch.nn.functional as F
 
 from colmap_pvs.errors import ConfigError, ShapeError
 from colmap_pvs.model import PVSNetConfig
-from colmap_pvs.model.cascade import next_stage_range, probability_confidence, regress_inverse_depth
-from colmap_pvs.model.cost import downsample_sparse_depth, group_correlation, guidance_weights
+from colmap_pvs.model.cascade import (
+    next_stage_range,
+    prior_plane_range,
+    probability_confidence,
+    regress_inverse_depth,
+)
+from colmap_pvs.model.cost import (
+    densify_inverse_depth,
+    downsample_sparse_depth,
+    group_correlation,
+    guidance_weights,
+)
 from colmap_pvs.model.features import FeatureNet, normalized_intensity_channels
 from colmap_pvs.model.layers import ConvBnReLU, Up3d, conv_nd
 from colmap_pvs.model.regularization import CoarseRegularizer, ResNet3D, StageRegularizer, UNet3D
@@ -268,6 +278,45 @@ def test_guidance_weights_and_sparse_downsampling():
     )
 
 
+def test_densify_inverse_depth_keeps_hints_and_fills_between():
+    hint = torch.zeros(2, 1, 9, 13)
+    hint[0, 0, 1, 1] = 2.0
+    hint[0, 0, 7, 11] = 4.0
+    dense = densify_inverse_depth(hint)
+    assert dense.shape == hint.shape and torch.isfinite(dense).all()
+    # Hint pixels keep their exact inverse depth; everything else lies between the two hints.
+    torch.testing.assert_close(dense[0, 0, 1, 1], torch.tensor(0.5))
+    torch.testing.assert_close(dense[0, 0, 7, 11], torch.tensor(0.25))
+    assert torch.all((dense[0] >= 0.25 - 1e-6) & (dense[0] <= 0.5 + 1e-6))
+    # Nearer the first hint means nearer its value.
+    assert dense[0, 0, 2, 2] > dense[0, 0, 6, 10]
+    # An image without hints gets no prior.
+    assert torch.all(dense[1] == 0)
+    # One hint: a constant prior over the whole image.
+    one = torch.zeros(1, 1, 6, 6)
+    one[0, 0, 4, 2] = 5.0
+    torch.testing.assert_close(densify_inverse_depth(one), torch.full((1, 1, 6, 6), 0.2))
+
+
+def test_prior_plane_range_windows_and_fallback():
+    prior = torch.tensor([[[[0.5, 0.0], [0.9, 0.21]]]])  # inverse depths; 0 = no prior
+    inv_lo, inv_hi = torch.tensor([0.2]), torch.tensor([1.0])  # depth range [1, 5]
+    start, step = prior_plane_range(prior, 0.2, 9, inv_lo=inv_lo, inv_hi=inv_hi)
+    assert start.shape == step.shape == (1, 1, 2, 2)
+    end = start - 8 * step
+    # Inside the range: +-20 % of the prior.
+    torch.testing.assert_close(start[0, 0, 0, 0], torch.tensor(0.6))
+    torch.testing.assert_close(end[0, 0, 0, 0], torch.tensor(0.4))
+    # No prior: the global range.
+    torch.testing.assert_close(start[0, 0, 0, 1], torch.tensor(1.0))
+    torch.testing.assert_close(end[0, 0, 0, 1], torch.tensor(0.2))
+    # Near the range's ends the window keeps its width and is moved inside.
+    torch.testing.assert_close(start[0, 0, 1, 0], torch.tensor(1.0))
+    torch.testing.assert_close(end[0, 0, 1, 0], torch.tensor(1.0 - 0.36))
+    torch.testing.assert_close(end[0, 0, 1, 1], torch.tensor(0.2))
+    assert torch.all(start <= 1.0 + 1e-6) and torch.all(end >= 0.2 - 1e-6) and torch.all(step > 0)
+
+
 def test_config_validation():
     with pytest.raises(ConfigError, match="planes_per_stage"):
         PVSNetConfig(planes_per_stage=(48, 16))
@@ -275,6 +324,8 @@ def test_config_validation():
         PVSNetConfig(planes_per_stage=(48, 18, 8))
     with pytest.raises(ConfigError, match="loss_weights"):
         PVSNetConfig(loss_weights=(1.0, 1.0))
+    with pytest.raises(ConfigError, match="prior_halfwidth"):
+        PVSNetConfig(prior_halfwidth=1.0)
     with pytest.raises(ConfigError, match="groups_per_stage"):
         PVSNetConfig(groups_per_stage=(8, 8, 3))
     cfg = PVSNetConfig(

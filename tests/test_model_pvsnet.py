@@ -186,6 +186,29 @@ def test_sparse_guidance_moves_depth_toward_hint():
         torch.testing.assert_close(base(*inputs).depth, plain.depth)
 
 
+def test_sparse_prior_confines_coarse_depth_to_the_hint_window():
+    torch.manual_seed(0)
+    inputs = make_inputs(1, 3, 32, 48)
+    sparse = torch.zeros(1, 1, 32, 48)
+    sparse[..., 2::8, 3::8] = 2.0  # a hint in every 8x8 block
+    sparse[..., 18:, :] = torch.where(sparse[..., 18:, :] > 0, 3.0, 0.0)  # a farther lower half
+    r = 0.1
+    model = PVSNet(replace_config(TINY, sparse_prior=True, prior_halfwidth=r)).eval()
+    with torch.inference_mode():
+        out = model(*inputs, sparse_depth=sparse)
+        plain = model(*inputs)  # no hints: the global range, as without the switch
+        base = PVSNet(TINY).eval()
+        base.load_state_dict(model.state_dict())
+        torch.testing.assert_close(plain.depth, base(*inputs).depth)
+    check_output(out, model.config, 1, 3, 32, 48)
+    # Coarse depths regress over planes inside prior * (1 +- r) in inverse depth, the prior lying
+    # between the two hint depths.
+    for d in out.depths[:3]:
+        inv = 1.0 / d
+        assert torch.all(inv <= (1 + r) / 2.0 + 1e-5) and torch.all(inv >= (1 - r) / 3.0 - 1e-5)
+        assert d.max() - d.min() > 0.3  # the two halves stay apart
+
+
 def test_import_sets_no_global_torch_state():
     code = (
         "import torch\n"

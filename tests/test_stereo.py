@@ -14,7 +14,7 @@ import colmap_pvs.stereo as stereo_module
 from colmap_pvs.errors import CheckpointError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
-from colmap_pvs.io.maps import fusion_intrinsics, read_depth_map, read_normal_map
+from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
@@ -72,6 +72,8 @@ def test_stereo_cli_writes_colmap_maps_and_resumes(synthetic_ws, tmp_path, tiny_
         K = fusion_intrinsics(cam.K, (cam.width, cam.height), (64, 48))
         pts = backproject_depth(depth, K)
         assert np.all(np.sum(normals * pts, -1)[valid] < 0)  # camera-facing
+        conf = read_array(ws / "stereo" / "confidence_maps" / f"{name}.bin")
+        assert conf.shape == depth.shape and np.all((conf >= 0) & (conf <= 1))
         assert (ws / "stereo" / "previews" / f"{name}.depth.png").is_file()
         assert len(list((ws / "stereo" / "previews").glob(f"{name}.visibility.*.png"))) == 2
     assert (ws / "stereo" / stereo_module.CONFIG_FILENAME).is_file()
@@ -190,3 +192,19 @@ def test_sparse_hints_follow_point_ids_in_any_order():
         u, v = (K @ p)[:2] / p[2]
         assert hints[int(v), int(u)] == pytest.approx(p[2])
     assert (hints > 0).sum() == 3
+
+
+def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_checkpoint):
+    from colmap_pvs.model import load_checkpoint
+
+    base, _ = load_checkpoint(tiny_checkpoint, map_location="cpu")
+    assert not base.config.sparse_prior and not base.config.sparse_guidance
+    cfg = StereoConfig(workspace_path=tmp_path, checkpoint=tiny_checkpoint, device="cpu")
+    for prior, guidance in (("on", "checkpoint"), ("on", "on"), ("off", "checkpoint")):
+        changed = dataclasses.replace(cfg, sparse_prior=prior, sparse_guidance=guidance)
+        model, path, _ = stereo_module.load_stereo_model(changed, stereo_module.resolve_device("cpu"))
+        assert path == tiny_checkpoint
+        assert model.config.sparse_prior == (prior == "on")
+        assert model.config.sparse_guidance == (guidance == "on")
+        for k, v in model.state_dict().items():  # the same weights
+            assert np.array_equal(v.numpy(), base.state_dict()[k].numpy()), k

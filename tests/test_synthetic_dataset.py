@@ -193,6 +193,26 @@ def test_best_strategy_and_config_validation(tmp_path):
         _dataset_config(tmp_path, depth_percentiles=(1.0,))
 
 
+def test_hint_corruption_drops_perturbs_and_is_deterministic(tmp_path):
+    clean_ds = SyntheticMVSDataset(_dataset_config(tmp_path))
+    cfg = _dataset_config(tmp_path, hint_keep=(0.5, 0.5), hint_noise=0.02, hint_outliers=0.2)
+    noisy_ds = SyntheticMVSDataset(cfg)
+    assert noisy_ds.cache_path(0) == clean_ds.cache_path(0)  # sampling options keep the scene cache
+    clean, noisy = clean_ds[1]["sparse_depth"], noisy_ds[1]["sparse_depth"]
+    assert torch.equal(noisy, SyntheticMVSDataset(cfg)[1]["sparse_depth"])  # seeded
+    n_clean, kept = int((clean > 0).sum()), noisy > 0
+    assert 0.35 * n_clean < int(kept.sum()) < 0.65 * n_clean
+    assert torch.all(clean[kept] > 0)  # hints are only dropped, never moved
+    ratio = torch.log(noisy[kept] / clean[kept]).abs()
+    assert 0.005 < float(ratio.median()) < 0.05  # the 2 % noise
+    outliers = float((ratio > 0.1).float().mean())
+    assert 0.08 < outliers < 0.3 and float(ratio.max()) <= np.log(1.5) + 0.15
+    # Everything else of the sample is unchanged.
+    assert torch.equal(clean_ds[1]["images"], noisy_ds[1]["images"])
+    with pytest.raises(ConfigError, match="hint_keep"):
+        _dataset_config(tmp_path, hint_keep=(0.8, 0.2))
+
+
 # --------------------------------------------------------------------------- workspace
 
 

@@ -19,7 +19,7 @@ import torch
 from torch.utils.data import Dataset
 
 from colmap_pvs.config import load_config, replace_config
-from colmap_pvs.errors import ConfigError
+from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.model import PVSNetConfig, load_checkpoint
 from colmap_pvs.train import StepSampler, TrainConfig, Trainer, TrainingInterrupted
 
@@ -194,6 +194,26 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(tmp_path: Path) -> None:
     assert np.mean(losses[-3:]) < 0.7 * losses[0], losses
 
 
+def test_init_weights_starts_from_a_checkpoint_but_never_overrides_a_resume(tmp_path: Path) -> None:
+    first = Trainer(_config(tmp_path / "a", val_every=0, steps=2), train_dataset=PlaneDataset())
+    first.train()
+    source = first.model.state_dict()
+    # A model with one more switch (sparse prior) takes every matching tensor.
+    model_cfg = replace_config(TINY, sparse_prior=True)
+    cfg = _config(tmp_path / "b", val_every=0, steps=2, model=model_cfg, init_weights=first.model_path)
+    second = Trainer(cfg, train_dataset=PlaneDataset())
+    for k, v in second.model.state_dict().items():
+        assert torch.equal(v, source[k]), k
+    second.train()
+    trained = {k: v.clone() for k, v in second.model.state_dict().items()}
+    resumed = Trainer(replace_config(cfg, steps=3), train_dataset=PlaneDataset())
+    assert resumed.step == 2
+    for k, v in resumed.model.state_dict().items():
+        assert torch.equal(v, trained[k]), k
+    with pytest.raises(CheckpointError, match="missing.pt"):
+        Trainer(_config(tmp_path / "c", init_weights=tmp_path / "missing.pt"), train_dataset=PlaneDataset())
+
+
 def test_sigterm_checkpoints_and_the_run_resumes(tmp_path: Path) -> None:
     cfg = _config(tmp_path, val_every=0, batch_size=1, steps=3)
     # the 2nd sample fetch (step 2) raises SIGTERM: step 2 completes, then the loop stops
@@ -272,3 +292,16 @@ def test_trainer_takes_its_dataset_from_the_config(tmp_path: Path) -> None:
     assert train_ds.scans == ("sceneA",) and val_ds.scans == ("sceneB",)
     Trainer(replace_config(mcfg, val_every=0)).train()
     assert _raw(tmp_path / "mv" / "last.pt")["train_config"]["dataset"] == "mvsnet"
+
+
+def test_plot_curves_log_and_linear_axes(tmp_path: Path) -> None:
+    from colmap_pvs.train import plot_curves
+
+    series = {"first curve": ([3, 5, 7, 9], [0.30, 0.25, 0.22, 0.20]), "second": ([3, 5], [0.35, -1.0])}
+    blue = np.array([180, 119, 31])  # the first curve's colour (BGR)
+    for log_y in (True, False):
+        path = plot_curves(tmp_path / f"{log_y}.png", series, xlabel="N", log_y=log_y)
+        img = cv2.imread(str(path))
+        assert img.shape == (540, 960, 3)
+        assert (np.abs(img.astype(int) - blue).sum(-1) < 30).sum() > 200  # the curve is drawn
+    assert plot_curves(tmp_path / "none.png", {"x": ([1], [float("nan")])}) is None

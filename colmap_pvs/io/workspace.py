@@ -106,6 +106,11 @@ class Workspace:
             raise ConfigError(f"map kind {kind!r} is not one of {list(MAP_KINDS)}")
         return folder / f"{_check_image_name(name)}.{kind}.bin"
 
+    def confidence_map_path(self, name: str) -> Path:
+        """``stereo/confidence_maps/NAME.bin``: colmap-pvs's per-pixel confidence in ``[0, 1]`` (COLMAP
+        ignores this folder)."""
+        return self.stereo_dir / "confidence_maps" / f"{_check_image_name(name)}.bin"
+
     def depth_map_path(self, name: str, kind: str = "geometric") -> Path:
         """``stereo/depth_maps/NAME.KIND.bin`` with ``kind`` in ``MAP_KINDS``."""
         return self._map_path(self.depth_maps_dir, name, kind)

@@ -90,3 +90,31 @@ def next_stage_range(
     inv_start = center + half
     step = (2.0 * half / (num_planes - 1)).clamp_min(1e-12)
     return inv_start, step
+
+
+def prior_plane_range(
+    prior_inv: torch.Tensor,
+    halfwidth: float,
+    num_planes: int,
+    *,
+    inv_lo: torch.Tensor,
+    inv_hi: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel coarse hypotheses around a dense inverse-depth prior.
+
+    Args:
+        prior_inv: ``[B, 1, h, w]`` prior inverse depth (0 = none: that pixel gets the global range).
+        halfwidth: relative half-width ``r``: planes span ``prior_inv * (1 +- r)``, moved (then
+            clipped) inside ``[inv_lo, inv_hi]`` (``[B]``).
+
+    Returns ``(inv_start, inv_step)``, each ``[B, 1, h, w]``.
+    """
+    lo_b, hi_b = inv_lo.view(-1, 1, 1, 1), inv_hi.view(-1, 1, 1, 1)
+    full = (hi_b - lo_b) / 2
+    has = prior_inv > 0
+    half = torch.where(has, torch.minimum(halfwidth * prior_inv, full), full.expand_as(prior_inv))
+    center = torch.where(has, prior_inv, (hi_b + lo_b).expand_as(prior_inv) / 2)
+    center = torch.maximum(torch.minimum(center, hi_b - half), lo_b + half)
+    inv_start = center + half
+    step = (2.0 * half / (num_planes - 1)).clamp_min(1e-12)
+    return inv_start, step

@@ -89,6 +89,18 @@ class PVSNetConfig:
             "the probability volume (a Gaussian prior, renormalised), or both"
         },
     )
+    sparse_prior: bool = field(
+        default=False,
+        metadata={
+            "help": "centre the coarse stage's hypotheses per pixel on a dense prior interpolated "
+            "(push-pull, inverse depth) from the sparse depth hints, +- prior_halfwidth; pixels of an "
+            "image without hints use the global range"
+        },
+    )
+    prior_halfwidth: float = field(
+        default=0.3,
+        metadata={"help": "coarse search half-width around the sparse prior, relative to its inverse depth"},
+    )
     normalized_channels: int = field(
         default=0,
         metadata={
@@ -167,6 +179,10 @@ class PVSNetConfig:
         need(
             self.guidance_mode in ("cost", "probability", "both"),
             f"unknown guidance_mode {self.guidance_mode!r}",
+        )
+        need(
+            0.0 < self.prior_halfwidth < 1.0,
+            f"prior_halfwidth must be in (0, 1), got {self.prior_halfwidth}",
         )
         need(
             0 <= self.normalized_channels <= 8,

@@ -71,6 +71,32 @@ def downsample_sparse_depth(sparse_depth: torch.Tensor, scale: int) -> torch.Ten
     return torch.where(inv > 0, 1.0 / inv.clamp_min(1e-12), torch.zeros_like(inv))
 
 
+def densify_inverse_depth(hint: torch.Tensor) -> torch.Tensor:
+    """Dense inverse-depth prior from sparse depth hints by push-pull interpolation.
+
+    Args:
+        hint: ``[B, 1, h, w]`` sparse depth (0 = no hint).
+
+    Returns:
+        ``[B, 1, h, w]`` inverse depth: the hint's where there is one, elsewhere a smooth fill
+        from a pyramid of hint averages (each level averages the hints of 2x2 blocks of the
+        level below; a pixel takes its own level's average where that level has a hint and the
+        bilinearly upsampled coarser estimate elsewhere). All 0 for an image without hints.
+    """
+    inv = torch.where(hint > 0, 1.0 / hint.clamp_min(1e-12), torch.zeros_like(hint))
+    sums, counts = [inv], [(hint > 0).to(inv.dtype)]
+    while max(sums[-1].shape[-2:]) > 1:
+        sums.append(F.avg_pool2d(sums[-1], 2, ceil_mode=True) * 4.0)
+        counts.append(F.avg_pool2d(counts[-1], 2, ceil_mode=True) * 4.0)
+    est = sums[-1] / counts[-1].clamp_min(1e-12)
+    for s, n in zip(reversed(sums[:-1]), reversed(counts[:-1]), strict=True):
+        up = F.interpolate(est, size=s.shape[-2:], mode="bilinear", align_corners=False)
+        own = s / n.clamp_min(1e-12)
+        c = n.clamp(0.0, 1.0)
+        est = c * own + (1.0 - c) * up
+    return est
+
+
 def guidance_weights(
     hint: torch.Tensor,
     inv_start: torch.Tensor,

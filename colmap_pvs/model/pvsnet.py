@@ -4,7 +4,9 @@ Pipeline (paper sections 3.1-3.4):
 
 1. A shared 2D CNN extracts features of every view at ``H/4`` (and ``H/2``, ``H`` for the cascade).
 2. Coarse stage (``H/4``): each source's features are warped onto ``D0`` fronto-parallel planes
-   uniform in inverse depth and correlated group-wise with the reference (``C_i`` ``[B, G, D, h, w]``);
+   uniform in inverse depth (over the global depth range, or with ``sparse_prior`` per pixel around
+   the interpolated sparse points) and correlated group-wise with the reference (``C_i``
+   ``[B, G, D, h, w]``);
    the visibility network turns each ``C_i`` into a visibility map ``V_i``; truncated maps weight
    the aggregation ``C = sum V_i' C_i / sum V_i'``. Sources are processed one at a time, so
    inference memory grows linearly with ``N`` only through the features.
@@ -26,9 +28,15 @@ from torch import nn
 from torch.profiler import record_function
 
 from ..errors import ShapeError
-from .cascade import Regression, next_stage_range, probability_confidence, regress_inverse_depth
+from .cascade import (
+    Regression,
+    next_stage_range,
+    prior_plane_range,
+    probability_confidence,
+    regress_inverse_depth,
+)
 from .config import NETWORK_STRIDE, PVSNetConfig
-from .cost import downsample_sparse_depth, group_correlation, guidance_weights
+from .cost import densify_inverse_depth, downsample_sparse_depth, group_correlation, guidance_weights
 from .features import FeatureNet, normalized_intensity_channels
 from .layers import to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
@@ -90,7 +98,8 @@ class PVSNet(nn.Module):
     - ``cam_from_world`` ``[B, N, 4, 4]`` (``x_cam = R x_world + t``);
     - ``depth_min``, ``depth_max`` ``[B]`` with ``0 < depth_min < depth_max``;
     - ``sparse_depth`` optional ``[B, 1, H, W]`` reference-view depth hints (0 = none), used only
-      when ``config.sparse_guidance`` is on.
+      when ``config.sparse_guidance`` (Poggi modulation) or ``config.sparse_prior`` (coarse
+      hypotheses centred on the hints' push-pull interpolation) is on.
 
     Images are padded bottom/right (replicate) to a multiple of 16 (``K`` unchanged) and the
     outputs are cropped back. Returns a :class:`PVSNetOutput`.
@@ -203,7 +212,8 @@ class PVSNet(nn.Module):
             # Bottom/right padding keeps K valid for the padded image.
             flat = F.pad(flat, (0, Wp - W, 0, Hp - H), mode="replicate")
         guidance = cfg.sparse_guidance and sparse_depth is not None
-        if guidance:
+        use_prior = cfg.sparse_prior and sparse_depth is not None
+        if guidance or use_prior:
             hints_full = F.pad(sparse_depth.to(device=device, dtype=dtype), (0, Wp - W, 0, Hp - H))
             hints_full = torch.nan_to_num(hints_full, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
 
@@ -223,8 +233,15 @@ class PVSNet(nn.Module):
         h, w = Hp // 4, Wp // 4
         D = cfg.planes_per_stage[0]
         K = scale_intrinsics(intrinsics, 0.25)
-        inv_start, inv_step = plane_range(depth_min, depth_max, D)
-        plane_depths = hypothesis_depths(inv_start, inv_step, D)[:, :, 0, 0]  # [B, D]
+        if use_prior:
+            prior_inv = densify_inverse_depth(downsample_sparse_depth(hints_full, 4))
+            inv_start, inv_step = prior_plane_range(
+                prior_inv, cfg.prior_halfwidth, D, inv_lo=inv_lo, inv_hi=inv_hi
+            )
+            plane_depths = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
+        else:
+            inv_start, inv_step = plane_range(depth_min, depth_max, D)
+            plane_depths = hypothesis_depths(inv_start, inv_step, D)[:, :, 0, 0]  # [B, D]
         vis_maps: list[torch.Tensor] = []
         acc = CostAccumulator()
         for i in range(1, N):

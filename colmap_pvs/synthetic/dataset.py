@@ -323,6 +323,18 @@ class SyntheticDatasetConfig:
     num_points: int = field(
         default=1500, metadata={"help": "sparse points sampled per scene (before filtering)"}
     )
+    hint_keep: tuple[float, ...] = field(
+        default=(1.0, 1.0),
+        metadata={"help": "each sample keeps a random fraction in [lo, hi] of its sparse depth hints"},
+    )
+    hint_noise: float = field(
+        default=0.0,
+        metadata={"help": "relative (log-normal) noise std of the sparse depth hints, per hint"},
+    )
+    hint_outliers: float = field(
+        default=0.0,
+        metadata={"help": "fraction of hints whose depth is scaled by a random factor in [2/3, 3/2]"},
+    )
     depth_percentiles: tuple[float, ...] = field(
         default=(1.0, 99.0),
         metadata={"help": "percentiles of the reference's sparse depths giving the range"},
@@ -361,6 +373,14 @@ class SyntheticDatasetConfig:
                 f"1 + num_best + num_worst = {1 + self.num_sources}"
             )
         object.__setattr__(self, "depth_percentiles", _pair("depth_percentiles", self.depth_percentiles))
+        object.__setattr__(self, "hint_keep", _pair("hint_keep", self.hint_keep))
+        if not 0.0 <= self.hint_keep[0] <= self.hint_keep[1] <= 1.0:
+            raise ConfigError(f"hint_keep must satisfy 0 <= lo <= hi <= 1, got {self.hint_keep}")
+        if not (self.hint_noise >= 0 and 0 <= self.hint_outliers <= 1):
+            raise ConfigError(
+                f"hint_noise must be >= 0 and hint_outliers in [0, 1], got {self.hint_noise}, "
+                f"{self.hint_outliers}"
+            )
         if not 0 <= self.depth_margin < 1 or not 0 <= self.min_depth_inside <= 1:
             raise ConfigError(
                 f"depth_margin must be in [0, 1) and min_depth_inside in [0, 1], got {self.depth_margin}, "
@@ -558,6 +578,21 @@ class SyntheticMVSDataset(Dataset):
         )
         return info, views, depth_range
 
+    def _corrupt_hints(self, sparse: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Drop, perturb and corrupt the hints ``[H, W]`` (0 = none) as ``hint_*`` asks (like real SfM)."""
+        c = self.config
+        if c.hint_keep == (1.0, 1.0) and c.hint_noise == 0 and c.hint_outliers == 0:
+            return sparse
+        rows, cols = np.nonzero(sparse)
+        keep = rng.random(rows.size) < rng.uniform(*c.hint_keep)
+        z = sparse[rows, cols].astype(np.float64)
+        z *= np.exp(rng.normal(0.0, c.hint_noise, z.size))
+        bad = rng.random(z.size) < c.hint_outliers
+        z[bad] *= np.exp(rng.uniform(np.log(2 / 3), np.log(3 / 2), int(bad.sum())))
+        out = np.zeros_like(sparse)
+        out[rows[keep], cols[keep]] = z[keep]
+        return out
+
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         """Sample ``index``: a dict with exactly the keys of :data:`SAMPLE_KEYS`.
 
@@ -581,6 +616,7 @@ class SyntheticMVSDataset(Dataset):
         sparse = sparse_depth_map(
             views.points.xyz[observed], views.K[ref], views.cam_from_world[ref], views.height, views.width
         )
+        sparse = self._corrupt_hints(sparse, _seed(info.scene_seed, 9, index))
         return {
             "images": torch.from_numpy(images),
             "intrinsics": torch.from_numpy(views.K[idx].astype(np.float32)),

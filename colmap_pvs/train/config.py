@@ -97,7 +97,17 @@ class TrainConfig:
     )
     use_sparse_depth: bool = field(
         default=True,
-        metadata={"help": "pass the samples' sparse_depth to the model (used when model.sparse_guidance)"},
+        metadata={
+            "help": "pass the samples' sparse_depth to the model (used by model.sparse_guidance and "
+            "model.sparse_prior)"
+        },
+    )
+    init_weights: Path | None = field(
+        default=None,
+        metadata={
+            "help": "start a fresh run from this checkpoint's weights (parameters whose name and shape "
+            "match; the others keep their initialisation); ignored when resuming"
+        },
     )
     seed: int = field(default=0, metadata={"help": "seed of weights init, sample order and all RNGs"})
     sample_grouping: int = field(
