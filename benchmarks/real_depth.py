@@ -346,6 +346,23 @@ BASELINES = {
 }
 
 
+def evaluate_against_gt(ws: Path, data: Path, refs: list[str]):
+    """``colmap_pvs.evaluate.evaluate_depth`` of ``ws``'s maps of ``refs`` against the uint16-mm GT of
+    ``data/depth`` (``metrics.json`` written into ``ws``)."""
+    from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
+
+    return evaluate_depth(
+        EvaluateDepthConfig(
+            workspace_path=ws,
+            gt=data / "depth",
+            gt_scale=0.001,
+            gt_pattern="{stem}",
+            images=tuple(refs),
+            output_path=ws / "metrics.json",
+        )
+    )
+
+
 def errors_on_mask(ws: Path, mask_ws: Path, gt_dir: Path, refs: list[str]) -> tuple[float, float]:
     """Pooled AbsRel and % under 5 % of ``ws``'s depth maps over the pixels where ``mask_ws`` (the
     Delaunay baseline) also has a prediction and the GT is valid; NaN when there are none."""
@@ -456,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
     # The baseline has no stereo record (checkpoint unknown) and missing outputs show in the table.
     logging.getLogger("colmap_pvs.evaluate").setLevel(logging.ERROR)
 
-    from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth, file_sha256
+    from colmap_pvs.evaluate import file_sha256
     from colmap_pvs.io.sparse import read_sparse_model
     from colmap_pvs.io.workspace import write_patch_match_cfg
     from colmap_pvs.views import ViewSelectionConfig, select_views
@@ -538,16 +555,7 @@ def main(argv: list[str] | None = None) -> int:
                 "method": method,
             }
             result = run_worker("baseline", spec, work / "logs" / f"{slug}.log")
-        metrics = evaluate_depth(
-            EvaluateDepthConfig(
-                workspace_path=ws,
-                gt=args.data / "depth",
-                gt_scale=0.001,
-                gt_pattern="{stem}",
-                images=tuple(refs),
-                output_path=ws / "metrics.json",
-            )
-        )
+        metrics = evaluate_against_gt(ws, args.data, refs)
         if checkpoint is None and label == BASELINES["delaunay"]:
             hull_ws = ws
         rows.append(

@@ -46,7 +46,6 @@ def run_one(
     out: Path, slug: str, sparse: Path, chosen: dict, n: int, ckpt: Path, refs: list[str], args
 ) -> dict:
     """Stereo with the explicit ``chosen`` sources in a fresh workspace, then the pooled metrics."""
-    from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
     from colmap_pvs.io.workspace import write_patch_match_cfg
 
     ws = rd.make_workspace(out / "ws" / slug, args.data / "images", sparse)
@@ -59,16 +58,7 @@ def run_one(
         "threads": args.threads,
     }
     result = rd.run_worker("stereo", spec, out / "logs" / f"{slug}.log")
-    m = evaluate_depth(
-        EvaluateDepthConfig(
-            workspace_path=ws,
-            gt=args.data / "depth",
-            gt_scale=0.001,
-            gt_pattern="{stem}",
-            images=tuple(refs),
-            output_path=ws / "metrics.json",
-        )
-    ).pooled
+    m = rd.evaluate_against_gt(ws, args.data, refs).pooled
     return {
         "mae_m": m.mae,
         "absrel": m.absrel,

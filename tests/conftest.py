@@ -44,26 +44,15 @@ def analytic_scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return make_analytic_workspace(tmp_path_factory.mktemp("analytic") / "workspace")
 
 
-TINY_MODEL_KWARGS = dict(
-    feature_channels=(8, 8, 8),
-    num_stages=1,
-    planes_per_stage=(8,),
-    groups_per_stage=(4,),
-    stage_channels=(),
-    visibility_channels=4,
-    regularization_channels=4,
-    loss_weights=(0.5, 0.5, 0.7),
-)
-
-
 def make_tiny_checkpoint(path: Path, **overrides) -> Path:
     """A tiny randomly initialised PVSNet checkpoint (for plumbing tests, not accuracy)."""
     import torch
+    from tiny_models import TINY_COARSE_KWARGS
 
     from colmap_pvs.model import PVSNet, PVSNetConfig, save_checkpoint
 
     torch.manual_seed(0)
-    return save_checkpoint(path, PVSNet(PVSNetConfig(**{**TINY_MODEL_KWARGS, **overrides})))
+    return save_checkpoint(path, PVSNet(PVSNetConfig(**{**TINY_COARSE_KWARGS, **overrides})))
 
 
 @pytest.fixture(scope="session")

@@ -4,22 +4,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import config_to_dict, replace_config
 from colmap_pvs.errors import CheckpointError
-from colmap_pvs.model import CHECKPOINT_FORMAT, PVSNet, PVSNetConfig, load_checkpoint, save_checkpoint
+from colmap_pvs.model import CHECKPOINT_FORMAT, PVSNet, load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-TINY = PVSNetConfig(
-    feature_channels=(8, 8, 8),
-    planes_per_stage=(8, 4, 4),
-    groups_per_stage=(4, 4, 4),
-    visibility_channels=4,
-    regularization_channels=4,
-    stage_channels=(4, 4),
-)
+TINY = TINY_PVSNET
 
 
 def _inputs():

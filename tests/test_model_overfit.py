@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import replace_config
-from colmap_pvs.model import PVSNet, PVSNetConfig
+from colmap_pvs.model import PVSNet
 from colmap_pvs.model.planes import render_plane
 from colmap_pvs.train.losses import depth_loss
 
@@ -36,14 +37,7 @@ def plane_sample():
 
 def test_overfit_single_sample():
     torch.manual_seed(0)
-    cfg = PVSNetConfig(
-        feature_channels=(8, 8, 8),
-        planes_per_stage=(16, 8, 4),
-        groups_per_stage=(4, 4, 4),
-        visibility_channels=4,
-        regularization_channels=8,
-        stage_channels=(4, 4),
-    )
+    cfg = replace_config(TINY_PVSNET, planes_per_stage=(16, 8, 4), regularization_channels=8)
     model = PVSNet(cfg).train()
     *inputs, depth = plane_sample()
     assert (depth > 2.0).all() and (depth < 5.0).all()

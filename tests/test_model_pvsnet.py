@@ -8,6 +8,7 @@ import sys
 import pytest
 import torch
 import torch.nn.functional as F
+from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ShapeError
@@ -16,14 +17,7 @@ from colmap_pvs.model import PVSNet, PVSNetConfig, PVSNetOutput
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-TINY = PVSNetConfig(
-    feature_channels=(8, 8, 8),
-    planes_per_stage=(8, 8, 4),
-    groups_per_stage=(4, 4, 4),
-    visibility_channels=4,
-    regularization_channels=4,
-    stage_channels=(4, 4),
-)
+TINY = TINY_PVSNET
 
 
 def make_inputs(B: int, N: int, H: int, W: int, seed: int = 0):

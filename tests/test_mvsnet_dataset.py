@@ -189,6 +189,13 @@ def test_blendedmvs_layout_sample_values(tmp_path: Path) -> None:
         MVSNetDatasetConfig(root=tmp_path, layout="blendedmvs", scans=("sceneB",), num_views=3)
     )
     assert len(only_b) == 5 and only_b[2]["images"].shape == (3, 3, H, W)
+    # A corrupt or missing image is a format error naming the file.
+    (tmp_path / "sceneB" / "blended_images" / "00000002.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(MVSNetFormatError, match="00000002.jpg"):
+        only_b[2]
+    (tmp_path / "sceneB" / "blended_images" / "00000002.jpg").unlink()
+    with pytest.raises(MVSNetFormatError, match="does not exist"):
+        only_b[2]
 
 
 def test_dtu_layout_scaling_lights_and_sparse(tmp_path: Path) -> None:

@@ -16,25 +16,18 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from tiny_models import TINY_PVSNET
 from torch.utils.data import Dataset
 
 from colmap_pvs.config import load_config, replace_config
 from colmap_pvs.errors import CheckpointError, ConfigError
-from colmap_pvs.model import PVSNetConfig, load_checkpoint
+from colmap_pvs.model import load_checkpoint
 from colmap_pvs.train import StepSampler, TrainConfig, Trainer, TrainingInterrupted
 
 H, W, N = 48, 64, 3
 
-TINY = PVSNetConfig(
-    feature_channels=(8, 8, 8),
-    planes_per_stage=(8, 8, 4),
-    groups_per_stage=(4, 4, 4),
-    visibility_channels=4,
-    regularization_channels=4,
-    stage_channels=(4, 4),
-    confidence_planes=2,
-    channels_last=False,  # oneDNN's channels-last 3D kernels cost seconds of warm-up per shape
-)
+# oneDNN's channels-last 3D kernels cost seconds of warm-up per shape: off for these tiny runs.
+TINY = replace_config(TINY_PVSNET, confidence_planes=2, channels_last=False)
 
 
 def _rot_y(a: float) -> np.ndarray:
@@ -305,3 +298,19 @@ def test_plot_curves_log_and_linear_axes(tmp_path: Path) -> None:
         assert img.shape == (540, 960, 3)
         assert (np.abs(img.astype(int) - blue).sum(-1) < 30).sum() > 200  # the curve is drawn
     assert plot_curves(tmp_path / "none.png", {"x": ([1], [float("nan")])}) is None
+
+
+def test_resume_accepts_a_checkpoint_written_before_a_field_existed(tmp_path: Path) -> None:
+    cfg = _config(tmp_path, val_every=0, steps=1, batch_size=1)
+    Trainer(cfg, train_dataset=PlaneDataset()).train()
+    last = tmp_path / "last.pt"
+    raw = _raw(last)
+    del raw["train_config"]["init_weights"]  # as written by an older version
+    del raw["train_config"]["data"]["hint_noise"]
+    torch.save(raw, last)
+    resumed = Trainer(replace_config(cfg, steps=2), train_dataset=PlaneDataset())
+    assert resumed.step == 1
+    raw["train_config"]["data"]["no_such_field"] = 1  # a field that no longer exists: refused
+    torch.save(raw, last)
+    with pytest.raises(ConfigError, match="no longer loads"):
+        Trainer(cfg, train_dataset=PlaneDataset())

@@ -100,8 +100,9 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from ..config import atomic_write_bytes
-from ..errors import ColmapPVSError, ConfigError
+from ..errors import ColmapPVSError, ConfigError, WorkspaceError
 from ..geometry import scale_intrinsics
+from ..io.images import load_image
 from ..views import best_and_worst
 from .losses import downsample_depth
 
@@ -608,23 +609,23 @@ class MVSNetDataset(Dataset):
         self, scan: str, view: int, light: int | None
     ) -> tuple[np.ndarray, np.ndarray, MVSNetCamera]:
         path = self.path("image", scan, view, light)
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise MVSNetFormatError(f"cannot read image {str(path)!r}")
+        try:
+            rgb = load_image(path)
+        except WorkspaceError as exc:
+            raise MVSNetFormatError(str(exc)) from None
         cam = read_mvsnet_cam(self.path("cam", scan, view))
         K = cam.K.copy()
         K[0, 2] += self.config.pixel_center_offset
         K[1, 2] += self.config.pixel_center_offset
         s = float(self.config.resolved("intrinsics_scale"))
         K = scale_intrinsics(K, s, s)
-        h, w = bgr.shape[:2]
+        h, w = rgb.shape[:2]
         if self.config.image_size is not None:
             W, H = self.config.image_size
             if (W, H) != (w, h):
                 interp = cv2.INTER_AREA if (W <= w and H <= h) else cv2.INTER_LINEAR
-                bgr = cv2.resize(bgr, (W, H), interpolation=interp)
+                rgb = cv2.resize(rgb, (W, H), interpolation=interp)
                 K = np.diag([W / w, H / h, 1.0]) @ K
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         return rgb, K, cam
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:

@@ -56,7 +56,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
-from ..config import atomic_write_bytes, config_to_dict, replace_config, save_config
+from ..config import atomic_write_bytes, config_from_dict, config_to_dict, replace_config, save_config
 from ..errors import CheckpointError, ColmapPVSError, ConfigError
 from ..model import PVSNet, load_checkpoint, save_checkpoint
 from .config import RESUMABLE_CHANGES, TrainConfig
@@ -411,6 +411,12 @@ class Trainer:
                 f"{str(path)!r} is not a training checkpoint: no {exc.args[0]!r} entry"
             ) from None
         current = config_to_dict(self.config)
+        try:  # fields added since the checkpoint was written take their defaults
+            saved_cfg = config_to_dict(config_from_dict(TrainConfig, saved_cfg))
+        except ConfigError as exc:
+            raise ConfigError(
+                f"cannot resume from {str(path)!r}: its training config no longer loads: {exc}"
+            ) from None
         differing = sorted(
             k
             for k in set(current) | set(saved_cfg)
