@@ -15,7 +15,8 @@ Steps (everything is cached or rebuilt under ``--work_dir``):
      by unrelated frames far away in the sequence (index distance >= 1/3 of the sequence, lowest
      view score first; on video they see other parts of the room);
    - ``sparse guidance off`` / ``sparse prior off``: N=``--disturb_n`` with that parameter-free
-     switch of the checkpoint turned off (only when the checkpoint has it on);
+     switch of the checkpoint turned off (only when the checkpoint has it on), and with both off
+     (``no sparse input``) when it has both on;
    - ``mean-agg`` (ablation): the same sources as ``N=--disturb_n`` (and as ``disturbed``) with
      pixelwise visibility off: the same checkpoint with ``PVSNetConfig.visibility`` flipped
      (written to ``WORK/checkpoints``), or ``--ablation_checkpoint`` (a separately trained one).
@@ -522,10 +523,16 @@ def main(argv: list[str] | None = None) -> int:
         disturbed[r] = keep + far_sources(names.index(r), names, row, args.disturb_count)
     clean = {r: ranked(r)[: n_d - 1] for r in refs}
     settings.append((f"PVSNet N={n_d}, {args.disturb_count} disturbing", n_d, ckpt, disturbed))
+    offs = []
     for switch, what in (("sparse_guidance", "sparse guidance"), ("sparse_prior", "sparse prior")):
         off = make_switch_off_checkpoint(ckpt, work / "checkpoints" / f"{ckpt.stem}.{switch}_off.pt", switch)
         if off is not None:
             settings.append((f"PVSNet N={n_d}, {what} off", n_d, off, clean))
+            offs.append(off)
+    if len(offs) == 2:  # both on in the checkpoint: also without any sparse input
+        both = work / "checkpoints" / f"{ckpt.stem}.sparse_off.pt"
+        none = make_switch_off_checkpoint(offs[0], both, "sparse_prior")
+        settings.append((f"PVSNet N={n_d}, no sparse input", n_d, none, clean))
     settings.append((f"mean-agg N={n_d} (visibility off)", n_d, ablation_ckpt, clean))
     settings.append((f"mean-agg N={n_d}, {args.disturb_count} disturbing", n_d, ablation_ckpt, disturbed))
     no_sources = {r: [] for r in refs}

@@ -79,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--offset", type=int, default=None, help="first reference index (default STRIDE // 2)")
     p.add_argument("--max_image_size", type=int, default=320)
     p.add_argument("--threads", type=int, default=0, help="torch threads; 0 = torch's default")
+    p.add_argument(
+        "--plot", choices=["mixed", "best", "both"], default="both", help="source sets drawn in the plot"
+    )
     args = p.parse_args(argv)
     if min(args.views) < 3:
         p.error(f"--views must be >= 3 (2 best sources + the reference), got {args.views}")
@@ -165,13 +168,14 @@ def main(argv: list[str] | None = None) -> int:
     (out / "ablation.csv").write_text(buf.getvalue())
     series = {}
     for label, _ in args.model:
-        for kind in ("mixed", "best"):
-            pts = sorted((r["N"], r["mae_m"]) for r in rows if r["model"] == label and r["sources"] == kind)
-            series[f"{label} ({kind})"] = ([x for x, _ in pts], [y for _, y in pts])
+        for kind in ("mixed", "best") if args.plot == "both" else (args.plot,):
+            pts = sorted((r["N"], r["mae_m"]) for r in rows if (r["model"], r["sources"]) == (label, kind))
+            name = label if args.plot != "both" else f"{label} ({kind})"
+            series[name] = ([x for x, _ in pts], [y for _, y in pts])
     plot_curves(
         out / "ablation_mae.png",
         series,
-        title="hololens-dev: depth MAE (m) vs views; mixed = 2 best + far-away frames",
+        title=f"hololens-dev: depth MAE (m) vs views ({args.plot}; mixed = 2 best + far-away frames)",
         xlabel="N (views)",
         log_y=False,
     )
