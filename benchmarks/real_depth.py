@@ -234,18 +234,15 @@ def interpolate_sparse_depth(uv: np.ndarray, depth: np.ndarray, height: int, wid
     return out
 
 
-def push_pull_depth(uv: np.ndarray, depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Every pixel filled from the sparse depths by the push-pull interpolation (inverse depth) of
-    ``colmap_pvs.model.cost.densify_inverse_depth``: the sparse prior the network starts from."""
+def push_pull_depth(cam_points: np.ndarray, K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Every pixel filled from the camera-frame points ``[P, 3]`` by the push-pull interpolation
+    (inverse depth) of ``colmap_pvs.model.cost.densify_inverse_depth``: the network's sparse prior."""
     import torch
 
+    from colmap_pvs.geometry import sparse_depth_map
     from colmap_pvs.model.cost import densify_inverse_depth
 
-    hints = np.zeros((height, width), np.float32)
-    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-    ok = (col >= 0) & (col < width) & (row >= 0) & (row < height) & (depth > 0)
-    order = np.argsort(-depth[ok])  # nearest written last
-    hints[row[ok][order], col[ok][order]] = depth[ok][order]
+    hints = sparse_depth_map(cam_points, K, np.eye(4), height, width)
     inv = densify_inverse_depth(torch.from_numpy(hints)[None, None])[0, 0].numpy()
     return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0).astype(np.float32)
 
@@ -276,7 +273,7 @@ def baseline_worker(spec: dict) -> dict:
         if spec.get("method", "delaunay") == "delaunay":
             depth = interpolate_sparse_depth(uvw[:, :2] / uvw[:, 2:], x[:, 2], h, w)
         else:  # push-pull fill of the hints (the network's sparse prior, at full resolution)
-            depth = push_pull_depth(uvw[:, :2] / uvw[:, 2:], x[:, 2], h, w)
+            depth = push_pull_depth(x, K, h, w)
         write_depth_map(ws.depth_map_path(name, "geometric"), depth)
         times.append(time.perf_counter() - start)
     return {

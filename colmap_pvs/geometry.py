@@ -41,3 +41,30 @@ def to_homogeneous(cam_from_world: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :] = np.asarray(cam_from_world, dtype=np.float64)[:3, :]
     return T
+
+
+def sparse_depth_map(
+    xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """``[H, W]`` float32 camera depth of the world points ``xyz`` ``[P, 3]`` at the pixels they
+    project into (``cam_from_world`` ``[3|4, 4]``), 0 elsewhere.
+
+    Pixel ``(col, row)`` receives the points with ``floor(u) = col, floor(v) = row`` for ``(u, v)``
+    the projection with ``K``; points behind the camera or outside the map are dropped; the nearest
+    point wins.
+    """
+    out = np.zeros((height, width), np.float32)
+    if xyz.shape[0] == 0:
+        return out
+    cam = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uvw = cam @ K.T
+        uv = uvw[:, :2] / uvw[:, 2:3]
+    ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
+    col = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+    row = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    ok &= (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    order = np.argsort(-z[ok], kind="stable")  # farthest first, nearest written last
+    out[row[ok][order], col[ok][order]] = z[ok][order]
+    return out

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from .config import replace_config, save_config
 from .errors import CheckpointError, ColmapPVSError, WorkspaceError
-from .geometry import to_homogeneous
+from .geometry import sparse_depth_map, to_homogeneous
 from .io.images import load_image, resize_image
 from .io.maps import (
     fusion_intrinsics,
@@ -153,24 +153,14 @@ def _sparse_depth_map(
 
     ``id_order`` is ``np.argsort(model.points.ids)``; pass it to avoid re-sorting per image.
     """
-    out = np.zeros((height, width), dtype=np.float32)
     if image.point3D_ids.size == 0:
-        return out
+        return np.zeros((height, width), dtype=np.float32)
     ids = model.points.ids
     order = np.argsort(ids, kind="stable") if id_order is None else id_order
     pos = np.searchsorted(ids, image.point3D_ids, sorter=order).clip(max=len(ids) - 1)
     rows = order[pos]
     rows = rows[ids[rows] == image.point3D_ids]
-    x = model.points.xyz[rows] @ image.R.T + image.t
-    x = x[x[:, 2] > 0]
-    uvw = x @ K.T
-    col = np.floor(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
-    row = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
-    ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    # Nearest point wins where several land on one pixel.
-    order = np.argsort(-x[ok, 2])
-    out[row[ok][order], col[ok][order]] = x[ok, 2][order]
-    return out
+    return sparse_depth_map(model.points.xyz[rows], K, image.cam_from_world, height, width)
 
 
 def _prepare_views(ws: Workspace, model: SparseModel, names: list[str], max_image_size: int):

@@ -169,41 +169,27 @@ def test_missing_images_are_named(tmp_path):
 
 
 @pytest.mark.slow
-def test_hololens_subset_subpixel(shared_data_dir, tmp_path):
-    data = shared_data_dir / "hololens-dev"
-    if not (data / "poses.txt").is_file():
+@pytest.mark.parametrize(
+    "folder, marker, subset, max_median_px",
+    [
+        ("hololens-dev", "poses.txt", {"frame_step": 3, "max_images": 15}, 1.0),
+        ("fountain-P11", "cameras", {"max_images": 6}, 0.5),
+    ],
+)
+def test_real_subset_subpixel(shared_data_dir, tmp_path, folder, marker, subset, max_median_px):
+    data = shared_data_dir / folder
+    if not (data / marker).exists():
         pytest.skip(f"{data} is missing")
     out = import_poses(
         ImportPosesConfig(
             image_path=data / "images",
             poses_path=data,
-            output_path=tmp_path / "h",
-            frame_step=3,
-            max_images=15,
+            output_path=tmp_path / "out",
             max_num_features=1024,
             num_threads=2,
+            **subset,
         )
     )
     errs = reprojection_errors(out)
     assert errs.size > 1000
-    assert np.median(errs) < 1.0
-
-
-@pytest.mark.slow
-def test_fountain_subset_subpixel(shared_data_dir, tmp_path):
-    data = shared_data_dir / "fountain-P11"
-    if not (data / "cameras").is_dir():
-        pytest.skip(f"{data} is missing")
-    out = import_poses(
-        ImportPosesConfig(
-            image_path=data / "images",
-            poses_path=data,
-            output_path=tmp_path / "f",
-            max_images=6,
-            max_num_features=1024,
-            num_threads=2,
-        )
-    )
-    errs = reprojection_errors(out)
-    assert errs.size > 1000
-    assert np.median(errs) < 0.5
+    assert np.median(errs) < max_median_px

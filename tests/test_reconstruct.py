@@ -45,16 +45,15 @@ def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, ca
 
     # A second run finds every finished output and recomputes nothing.
     mtime = (dense / "fused.ply").stat().st_mtime_ns
-    result = reconstruct(
-        ReconstructConfig(
-            image_path=ws / "images",
-            workspace_path=out,
-            input_path=ws / "sparse",
-            checkpoint=ckpt,
-            num_views=3,
-            mesh_depth=6,
-        )
+    rerun = ReconstructConfig(
+        image_path=ws / "images",
+        workspace_path=out,
+        input_path=ws / "sparse",
+        checkpoint=ckpt,
+        num_views=3,
+        mesh_depth=6,
     )
+    result = reconstruct(rerun)
     assert {"undistort", "stereo", "fusion"} <= set(result.resumed)
     assert (dense / "fused.ply").stat().st_mtime_ns == mtime
     assert result.num_registered == 5 and result.num_fused_points == len(
@@ -63,16 +62,7 @@ def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, ca
 
     # With the fused cloud gone (a run stopped during fusion), only fusion runs again.
     (dense / "fused.ply").unlink()
-    result = reconstruct(
-        ReconstructConfig(
-            image_path=ws / "images",
-            workspace_path=out,
-            input_path=ws / "sparse",
-            checkpoint=ckpt,
-            num_views=3,
-            mesh_depth=6,
-        )
-    )
+    result = reconstruct(rerun)
     assert "stereo" in result.resumed and "fusion" not in result.resumed
     assert (dense / "fused.ply").is_file()
 

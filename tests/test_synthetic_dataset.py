@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.geometry import sparse_depth_map
 from colmap_pvs.synthetic.cameras import CameraConfig, CameraRig, intrinsics, look_at
 from colmap_pvs.synthetic.dataset import (
     SAMPLE_KEYS,
@@ -17,7 +18,6 @@ from colmap_pvs.synthetic.dataset import (
     SyntheticMVSDataset,
     render_views,
     select_sources,
-    sparse_depth_map,
 )
 from colmap_pvs.synthetic.render import RenderConfig, Renderer
 from colmap_pvs.synthetic.scenes import scene_from_primitives

@@ -9,7 +9,7 @@ import pytest
 
 from colmap_pvs.geometry import backproject_depth
 from colmap_pvs.synthetic.cameras import ROLES, CameraConfig, CameraRig, generate_cameras, intrinsics, look_at
-from colmap_pvs.synthetic.dataset import render_scene_views
+from colmap_pvs.synthetic.dataset import render_scene
 from colmap_pvs.synthetic.render import RenderConfig, Renderer, apply_photometric
 from colmap_pvs.synthetic.scenes import FAMILIES, SceneConfig, build_scene, scene_from_primitives
 from colmap_pvs.synthetic.textures import (
@@ -139,9 +139,9 @@ def test_sphere_depth_matches_analytic_ray_sphere_intersection():
 
 @pytest.fixture(scope="module")
 def object_views():
-    return render_scene_views(
+    return render_scene(
         5, W, H, SceneConfig(family="object"), SMALL_CAMERAS, num_points=400, keep_normals=True
-    )
+    )[0]
 
 
 def _inverse_depth_at(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -191,14 +191,14 @@ def test_normals_are_unit_and_face_the_camera(object_views):
 
 
 def test_rendering_is_deterministic_and_seed_dependent(object_views):
-    again = render_scene_views(
+    again, _ = render_scene(
         5, W, H, SceneConfig(family="object"), SMALL_CAMERAS, num_points=400, keep_normals=True
     )
     for name in ("images", "depths", "normals", "K", "cam_from_world"):
         assert np.array_equal(getattr(again, name), getattr(object_views, name)), name
     assert np.array_equal(again.points.xyz, object_views.points.xyz)
     assert np.array_equal(again.points.visibility, object_views.points.visibility)
-    other = render_scene_views(6, W, H, SceneConfig(family="object"), SMALL_CAMERAS, num_points=400)
+    other, _ = render_scene(6, W, H, SceneConfig(family="object"), SMALL_CAMERAS, num_points=400)
     assert not np.array_equal(other.images, object_views.images)
 
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .cameras import CameraConfig, CameraRig, generate_cameras, look_at
-    from .dataset import SceneViews, SyntheticDatasetConfig, SyntheticMVSDataset, render_scene_views
+    from .dataset import SceneViews, SyntheticDatasetConfig, SyntheticMVSDataset, render_scene
     from .render import RenderConfig, Renderer
     from .scenes import Scene, SceneConfig, build_scene
     from .workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
@@ -31,7 +31,7 @@ _EXPORTS = {
     "SceneViews": "dataset",
     "SyntheticDatasetConfig": "dataset",
     "SyntheticMVSDataset": "dataset",
-    "render_scene_views": "dataset",
+    "render_scene": "dataset",
     "RenderConfig": "render",
     "Renderer": "render",
     "Scene": "scenes",
@@ -56,7 +56,7 @@ __all__ = [
     "generate_cameras",
     "look_at",
     "make_synthetic_workspace",
-    "render_scene_views",
+    "render_scene",
 ]
 
 

@@ -41,6 +41,7 @@ from torch.utils.data import Dataset
 
 from ..config import atomic_write_bytes, config_to_dict
 from ..errors import ConfigError
+from ..geometry import sparse_depth_map
 from ..types import SparseModel
 from ..views import (
     ViewSelectionConfig,
@@ -52,7 +53,7 @@ from ..views import (
 from .cameras import REFERENCE_ROLES, CameraConfig, CameraRig, generate_cameras
 from .render import RenderConfig, Renderer, _pair, apply_photometric
 from .scenes import Scene, SceneConfig, build_scene
-from .sfm import SimulatedPoints, build_sparse_model, project, simulate_sparse_points
+from .sfm import SimulatedPoints, build_sparse_model, simulate_sparse_points
 
 logger = logging.getLogger(__name__)
 
@@ -168,23 +169,6 @@ class SceneViews:
             )
 
 
-def render_scene_views(
-    seed: int,
-    width: int,
-    height: int,
-    scene: SceneConfig | None = None,
-    camera: CameraConfig | None = None,
-    render: RenderConfig | None = None,
-    num_points: int = 1500,
-    keep_normals: bool = False,
-) -> SceneViews:
-    """Build scene ``seed``, place cameras, render every view and simulate the sparse points.
-
-    Deterministic: the same arguments give identical arrays.
-    """
-    return render_scene(seed, width, height, scene, camera, render, num_points, keep_normals)[0]
-
-
 def render_scene(
     seed: int,
     width: int,
@@ -195,7 +179,11 @@ def render_scene(
     num_points: int = 1500,
     keep_normals: bool = False,
 ) -> tuple[SceneViews, Scene]:
-    """:func:`render_scene_views`, also returning the :class:`~.scenes.Scene` itself."""
+    """Build scene ``seed``, place cameras, render every view and simulate the sparse points.
+
+    Returns the views and the :class:`~.scenes.Scene` itself. Deterministic: the same arguments
+    give identical arrays.
+    """
     scene_cfg, cam_cfg, ren_cfg = scene or SceneConfig(), camera or CameraConfig(), render or RenderConfig()
     sc = build_scene(scene_cfg, seed)
     renderer = Renderer(sc)
@@ -275,26 +263,6 @@ def rig_of(views: SceneViews) -> CameraRig:
         width=views.width,
         height=views.height,
     )
-
-
-def sparse_depth_map(
-    xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int
-) -> np.ndarray:
-    """``[H, W]`` float32 depth of the points ``[P, 3]`` at the pixels they project into, else 0.
-
-    Pixel ``(col, row)`` receives the points with ``floor(u) = col, floor(v) = row``; the nearest wins.
-    """
-    out = np.zeros((height, width), np.float32)
-    if xyz.shape[0] == 0:
-        return out
-    uv, z = project(xyz, K, cam_from_world)
-    ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
-    col = np.floor(uv[:, 0]).astype(np.int64, copy=False)
-    row = np.floor(uv[:, 1]).astype(np.int64, copy=False)
-    ok &= (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    order = np.argsort(-z[ok], kind="stable")  # farthest first, nearest written last
-    out[row[ok][order], col[ok][order]] = z[ok][order]
-    return out
 
 
 # --------------------------------------------------------------------------- dataset
@@ -471,7 +439,7 @@ class SyntheticMVSDataset(Dataset):
         if views is None:
             c = self.config
             t0 = time.perf_counter()
-            views = render_scene_views(
+            views, _ = render_scene(
                 self.scene_seed(scene_index), c.width, c.height, c.scene, c.camera, c.render, c.num_points
             )
             self.stats["generated"] += 1
@@ -635,9 +603,7 @@ __all__ = [
     "SyntheticDatasetConfig",
     "SyntheticMVSDataset",
     "render_scene",
-    "render_scene_views",
     "render_views",
     "select_sources",
     "rig_of",
-    "sparse_depth_map",
 ]
