@@ -110,7 +110,8 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command(
         "train",
-        "train PVSNet on synthetic scenes (anti-noise strategy); resumable from OUTPUT_DIR/last.pt",
+        "train PVSNet on synthetic scenes, optionally mixed with real COLMAP scenes (self-supervised, "
+        "--real_fraction); anti-noise strategy; resumable from OUTPUT_DIR/last.pt",
         "colmap_pvs.train:TrainConfig",
         "colmap_pvs.train:train",
         "colmap_pvs.cli.reports:report_train",
