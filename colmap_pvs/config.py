@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import tempfile
 import types
@@ -41,6 +42,19 @@ def parse_bool(text: str | bool) -> bool:
     if low in _FALSE:
         return False
     raise ConfigError(f"expected a boolean (true/false/1/0), got {text!r}")
+
+
+def check_range(
+    name: str, value: float, *, low: float | None = None, high: float | None = None
+) -> None:
+    """Raise :class:`ConfigError` naming ``name`` unless ``low <= value <= high`` (and finite)."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (low is None or value >= low) and (high is None or value <= high)
+    if not ok:
+        bounds = " and ".join(
+            b for b in (f">= {low}" if low is not None else "", f"<= {high}" if high is not None else "") if b
+        )
+        raise ConfigError(f"{name} must be a finite number{' ' + bounds if bounds else ''}, got {value!r}")
 
 
 def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
@@ -99,9 +113,12 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if isinstance(value, bool):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         try:
-            return float(value)
+            number = float(value)
         except (TypeError, ValueError):
             raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if math.isnan(number):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return number
     if tp is str:
         if not isinstance(value, (str, Path)):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
@@ -203,6 +220,13 @@ def load_config(cls: type[C], path: str | os.PathLike) -> C:
 # --------------------------------------------------------------------------- CLI flags
 
 
+def _bool_flag(text: str) -> bool:
+    try:
+        return parse_bool(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _field_help(field: dataclasses.Field) -> str:
     return str(field.metadata.get("help", ""))
 
@@ -237,6 +261,7 @@ def add_config_arguments(
         help_text = _field_help(f)
         if f.name not in required:
             help_text = f"{help_text} (default: {_jsonable(default)})".strip()
+        help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
         kwargs: dict[str, Any] = {"dest": f.name, "help": help_text, "default": argparse.SUPPRESS}
         origin = get_origin(tp)
         if origin is Literal:
@@ -245,9 +270,11 @@ def add_config_arguments(
         elif origin is tuple:
             kwargs["nargs"] = "+"
             kwargs["metavar"] = "V"
-        elif tp is bool:
-            kwargs["type"] = parse_bool
+        elif tp is bool:  # bare `--flag` is true; `--flag false` / `--flag=0` work too
+            kwargs["type"] = _bool_flag
             kwargs["metavar"] = "BOOL"
+            kwargs["nargs"] = "?"
+            kwargs["const"] = True
         elif tp in (int, float, str, Path):
             kwargs["type"] = str if tp is Path else tp
         else:

@@ -213,6 +213,8 @@ class FuseConfig:
             raise ConfigError(f"max_depth_error must be > 0, got {self.max_depth_error}")
         if self.min_consistent_views < 0:
             raise ConfigError(f"min_consistent_views must be >= 0, got {self.min_consistent_views}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.cache_size < 1:
             raise ConfigError(f"cache_size must be >= 1, got {self.cache_size}")
         object.__setattr__(self, "colmap_options", tuple(str(o) for o in self.colmap_options))

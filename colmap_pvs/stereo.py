@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, WorkspaceError
+from .errors import CheckpointError, ColmapPVSError, ConfigError, WorkspaceError
 from .geometry import sparse_depth_map, to_homogeneous
 from .io.images import load_image, resize_image
 from .io.maps import (
@@ -91,6 +91,23 @@ class StereoConfig:
     )
     adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
     adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
+    # issue 11: the field COLMAP's --PatchMatchStereo.geom_consistency maps to (its pass: issue 13).
+    geom_consistency: bool = field(
+        default=True,
+        metadata={"help": "geometric-consistency pass (COLMAP's PatchMatchStereo.geom_consistency)"},
+    )
+
+    def __post_init__(self) -> None:  # issue 11: bad values are refused where they enter
+        from .config import check_range
+
+        check_range("num_views", self.num_views, low=2)
+        check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("threads", self.threads, low=0)
+        check_range("min_sources", self.min_sources, low=1)
+        check_range("adapt_steps", self.adapt_steps, low=0)
+        check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
+        if 0 < self.max_image_size < 16:
+            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
 
 @dataclass
