@@ -123,7 +123,9 @@ def _convert_camera(
     )
 
 
-def _convert_points(rec: pycolmap.Reconstruction, registered: set[int], path: Path | None = None) -> Points3D:
+def _convert_points(
+    rec: pycolmap.Reconstruction, registered: set[int], path: Path | None = None
+) -> Points3D:
     ids, xyz, rgb, error, lengths, track_ids = [], [], [], [], [], []
     non_finite = 0
     for point_id in sorted(rec.points3D):

@@ -224,7 +224,8 @@ def undistort(config: UndistortConfig) -> Workspace:
         raise WorkspaceError(f"image folder {str(image_path)!r} does not exist")
     if output.exists() and (not output.is_dir() or any(output.iterdir())):
         raise WorkspaceError(f"output folder {str(output)!r} already exists and is not empty")
-    model = read_sparse_model(config.input_path, require_pinhole=False, warn_distortion=False)  # undistorted below
+    # Distortion is not ignored: the images are undistorted below.
+    model = read_sparse_model(config.input_path, require_pinhole=False, warn_distortion=False)
     missing = sorted(n for n in model.image_ids_by_name if not (image_path / n).is_file())
     if missing:
         raise WorkspaceError(
