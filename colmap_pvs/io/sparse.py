@@ -92,8 +92,8 @@ def _checked_pose(image, path: Path) -> np.ndarray:
         ok = bool(np.abs(R @ R.T - np.eye(3)).max() < 1e-6)
     if not ok:
         raise WorkspaceError(
-            f"{_model_file(path, 'images')!r}: image {str(image.name)!r} (id {image.image_id}) has an invalid "
-            f"pose: quaternion (w, x, y, z) {[quat[3], *quat[:3]]}, translation {t.tolist()}"
+            f"{_model_file(path, 'images')!r}: image {str(image.name)!r} (id {image.image_id}) has an "
+            f"invalid pose: quaternion (w, x, y, z) {[quat[3], *quat[:3]]}, translation {t.tolist()}"
         )
     return matrix.copy()
 
