@@ -15,16 +15,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
 import os
+import socket
 import tempfile
 import types
 import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
-from .errors import ConfigError
+from .errors import ConfigError, OutputError
 
 C = TypeVar("C")
 
@@ -180,16 +182,37 @@ def current_umask() -> int:
     return mask
 
 
+def host_tag() -> str:
+    """8 hex digits identifying this host in temporary file names."""
+    return hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def temp_tag() -> str:
+    """``pvs-HOST-PID``: marks our temporary files so that a later run can tell orphans (their process is
+    gone) from files a running process is still writing (:mod:`colmap_pvs.io.cleanup`)."""
+    return f"pvs-{host_tag()}-{os.getpid()}"
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename.
+
+    Raises:
+        OutputError: the folder is not writable or the disk is full (nothing is left behind).
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{temp_tag()}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp creates 0600; give the usual permissions
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -297,6 +320,9 @@ def make_temp_dir(parent: str | os.PathLike, prefix: str, suffix: str = ".tmp") 
 
     ``tempfile.mkdtemp`` creates ``0700`` folders; outputs renamed from it would be private.
     """
-    path = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=parent))
+    try:
+        path = Path(tempfile.mkdtemp(prefix=f"{prefix}{temp_tag()}.", suffix=suffix, dir=parent))
+    except OSError as exc:
+        raise OutputError(f"cannot create a folder in {str(parent)!r}: {exc.strerror or exc}") from None
     os.chmod(path, 0o777 & ~current_umask())
     return path

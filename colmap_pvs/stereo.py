@@ -25,6 +25,7 @@ from tqdm import tqdm
 from .config import replace_config, save_config
 from .errors import CheckpointError, ColmapPVSError, ConfigError, WorkspaceError
 from .geometry import sparse_depth_map, to_homogeneous
+from .io.cleanup import remove_orphan_temps
 from .io.images import load_image, resize_image
 from .io.maps import (
     fusion_intrinsics,
@@ -313,6 +314,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     Images without usable sources or sparse points are skipped with a warning.
     """
     ws, model_sparse = load_workspace(config.workspace_path)
+    remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
@@ -370,6 +372,11 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         result.processed.append(name)
         bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
     done = [n for n in refs if _is_done(ws, n)]
+    if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
+        reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
+        raise WorkspaceError(
+            f"no depth map in {str(ws.stereo_dir)!r}: all {len(refs)} reference(s) were skipped ({reasons})"
+        )
     write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = float(np.mean(times)) if times else 0.0
     logger.info(

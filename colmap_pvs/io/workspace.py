@@ -332,7 +332,8 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
         checked by the caller (:meth:`SourceSpec.resolve`).
 
     Raises:
-        WorkspaceError: missing file, or a malformed/duplicate entry (naming line number and content).
+        WorkspaceError: missing file, a file without any entry, or a malformed/duplicate entry (naming
+            line number and content).
     """
     path = Path(path)
     try:
@@ -363,6 +364,11 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
         reference = None
     if reference is not None:
         raise WorkspaceError(f"{path}:{reference[0]}: reference image {reference[1]!r} has no source line")
+    if not specs:
+        raise WorkspaceError(
+            f"patch-match config {str(path)!r} lists no reference image; delete it to use every image, "
+            "or run `colmap-pvs select-views`"
+        )
     return specs
 
 
