@@ -390,7 +390,8 @@ def _robust_depth_range(
         note = (
             f"{name}: {int(outliers.sum())} of {depths.shape[0]} sparse points are depth outliers "
             f"(outside {kept.min():.4g}..{kept.max():.4g}, median {np.median(depths):.4g}; farthest "
-            f"{depths[outliers].max():.4g}, nearest {depths[outliers].min():.4g}), ignored for the depth range"
+            f"{depths[outliers].max():.4g}, nearest {depths[outliers].min():.4g}), "
+            "ignored for the depth range"
         )
         depths = kept
     return _depth_range_from_depths(depths, config), note

@@ -63,7 +63,8 @@ def test_orphaned_temporaries_are_removed_but_live_ones_kept(tmp_path):
 
 def test_stereo_removes_orphans_of_a_killed_run(synthetic_ws, tmp_path, tiny_checkpoint):
     ws = _copy(synthetic_ws, tmp_path)
-    orphan = ws / "stereo" / "depth_maps" / f".x.png.geometric.bin.pvs-{host_tag()}-{_dead_pid()}.aaaa1111.tmp"
+    name = f".x.png.geometric.bin.pvs-{host_tag()}-{_dead_pid()}.aaaa1111.tmp"
+    orphan = ws / "stereo" / "depth_maps" / name
     orphan.parent.mkdir(parents=True, exist_ok=True)
     orphan.write_bytes(b"half a map")
     run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=32, num_views=2))
