@@ -79,7 +79,8 @@ def test_bad_photos_are_refused_before_sfm(analytic_scene, tmp_path):
     (images / "view_001.png").write_bytes(b"")
     data = (images / "view_002.png").read_bytes()
     (images / "view_002.png").write_bytes(data[: len(data) // 3])
-    with pytest.raises(WorkspaceError, match=r"2 of 5 photos.*view_001\.png.*empty.*view_002\.png.*truncated"):
+    pattern = r"2 of 5 photos.*view_001\.png.*empty.*view_002\.png.*truncated"
+    with pytest.raises(WorkspaceError, match=pattern):
         reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out"))
     assert not (tmp_path / "out").exists()
 

@@ -128,3 +128,29 @@ def test_write_errors_are_one_line_and_leave_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(config_module.tempfile, "mkstemp", refuse)
     with pytest.raises(OutputError, match=r"ro.*Permission denied"):
         atomic_write_bytes(tmp_path / "ro" / "y.bin", b"data")
+
+
+def test_disk_full_during_stereo_is_one_line_and_no_map_is_done(synthetic_ws, tmp_path, tiny_checkpoint,
+                                                                 monkeypatch, capsys):
+    import errno
+
+    import colmap_pvs.config as config_module
+
+    ws = _copy(synthetic_ws, tmp_path)
+    real = config_module.tempfile.mkstemp
+
+    def full(*args, **kwargs):
+        if ".photometric.bin." in kwargs.get("prefix", ""):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(config_module.tempfile, "mkstemp", full)
+    args = ["stereo", "--workspace_path", str(ws), "--checkpoint", str(tiny_checkpoint),
+            "--max_image_size", "32"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if "error" in line.lower()]
+    assert "Traceback" not in err and len(errors) == 1
+    assert "No space left on device" in errors[0] and ".photometric.bin" in errors[0]
+    assert not list((ws / "stereo" / "depth_maps").glob("*.geometric.bin"))  # nothing marked done
+    assert not list(ws.rglob("*.tmp"))
