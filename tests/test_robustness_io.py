@@ -117,3 +117,16 @@ def test_undistort_does_not_claim_distortion_is_ignored(analytic_scene, tmp_path
     with caplog.at_level("WARNING"):  # reading it without undistorting still says so
         read_sparse_model(src / "sparse", require_pinhole=False)
     assert "distortion is ignored" in caplog.text
+
+
+def test_undistort_refuses_a_truncated_photo(analytic_scene, tmp_path):
+    from colmap_pvs.io.workspace import UndistortConfig, undistort
+
+    images = tmp_path / "images"
+    shutil.copytree(analytic_scene["root"] / "images", images)
+    data = (images / "view_003.png").read_bytes()
+    (images / "view_003.png").write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(WorkspaceError, match=r"view_003\.png.*truncated"):
+        undistort(UndistortConfig(image_path=images, input_path=analytic_scene["root"] / "sparse",
+                                  output_path=tmp_path / "dense"))
+    assert not (tmp_path / "dense").exists()

@@ -31,7 +31,7 @@ import pycolmap
 from ..config import atomic_write_bytes, make_temp_dir
 from ..errors import ConfigError, WorkspaceError
 from ..types import SparseModel
-from .images import read_image_size
+from .images import check_image_file, read_image_size
 from .sparse import find_model_files, read_sparse_model, replace_directory
 
 logger = logging.getLogger(__name__)
@@ -232,6 +232,15 @@ def undistort(config: UndistortConfig) -> Workspace:
             f"{len(missing)} image(s) of the model are missing from {str(image_path)!r}: "
             f"{', '.join(missing[:10])}"
         )
+    # COLMAP's undistorter re-encodes a cut-off photo as a valid image with its missing part black.
+    broken = []
+    for name in sorted(model.image_ids_by_name):
+        try:
+            check_image_file(image_path / name)
+        except WorkspaceError as exc:
+            broken.append(str(exc))
+    if broken:
+        raise WorkspaceError(f"{len(broken)} image(s) cannot be undistorted: {'; '.join(broken[:5])}")
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = make_temp_dir(prefix=f".{output.name}.", suffix=".tmp", parent=output.parent)
     try:
