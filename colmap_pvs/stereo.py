@@ -353,6 +353,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         h, w = images.shape[-2:]
         ref = model_sparse.image_by_name(name)
         sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
+        sparse[(sparse < entry.depth_range[0]) | (sparse > entry.depth_range[1])] = 0.0  # issue 11: outliers
         try:
             depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
         except (RuntimeError, MemoryError) as exc:
