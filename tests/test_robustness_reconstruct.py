@@ -98,3 +98,18 @@ def test_sfm_stages_have_progress_bars_and_a_quiet_log(tmp_path, capfd):
     err = capfd.readouterr().err
     assert not GLOG_LINE.search(err)
     assert re.search(r"features: 100%.*4/4", err) and re.search(r"matching: 100%.*6/6", err)
+
+
+def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
+    import pycolmap
+
+    from colmap_pvs.io.pycolmap_output import pycolmap_log_to_file
+
+    with pycolmap_log_to_file(tmp_path / "logs") as folder:
+        pycolmap.logging.info("quiet message")
+    assert folder == tmp_path / "logs"
+    assert "quiet message" not in capfd.readouterr().err
+    assert "quiet message" in "".join(p.read_text() for p in folder.glob("pycolmap.log.*"))
+    with pycolmap_log_to_file(tmp_path / "logs2", enabled=False) as folder:  # --log_level DEBUG
+        pycolmap.logging.info("loud message")
+    assert folder is None and "loud message" in capfd.readouterr().err
