@@ -220,14 +220,6 @@ def _model_dir_ok(path: Path) -> bool:
 # --------------------------------------------------------------------------- provenance
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
     digest = hashlib.sha256()
     for name in names:
@@ -236,11 +228,13 @@ def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
 
 
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
+    from .evaluate import file_sha256
+
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint": str(checkpoint.resolve()),
-        "checkpoint_sha256": _sha256(checkpoint) if checkpoint.is_file() else None,
+        "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "checkpoint")},
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}

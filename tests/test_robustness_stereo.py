@@ -4,33 +4,21 @@ empty ``patch-match.cfg`` or a run that skips every image is an error that keeps
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 from colmap_pvs.cli.main import main
+import test_stereo
 
 from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
 from colmap_pvs.io.cleanup import remove_orphan_temps
 from colmap_pvs.io.workspace import read_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
-from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
 
-
-@pytest.fixture(scope="module")
-def synthetic_ws(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("robust") / "ws"
-    make_synthetic_workspace(root, SyntheticWorkspaceConfig(seed=3, width=96, height=72, num_views=4))
-    return root
-
-
-def _copy(ws: Path, tmp_path: Path) -> Path:
-    out = tmp_path / "ws"
-    shutil.copytree(ws, out)
-    return out
+synthetic_ws = test_stereo.synthetic_ws  # the same small synthetic workspace (a module fixture)
+_copy = test_stereo._copy
 
 
 def _dead_pid() -> int:
