@@ -47,13 +47,14 @@ __all__ = ["ReconstructConfig", "ReconstructResult", "reconstruct", "STAGES"]
 
 STAGES = ("features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh")
 #: The settings each stage's output depends on ("photos": names and sizes of the photos; "model": the
-#: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content).
+#: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so a moved
+#: copy of the same weights is the same checkpoint and new weights at the same path are not).
 STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "features": ("photos", "camera_model", "single_camera", "max_num_features", "sift_max_image_size"),
     "matching": ("matcher", "exhaustive_max_images"),
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
-    "stereo": ("max_image_size", "num_views", "checkpoint", "checkpoint_sha256"),
+    "stereo": ("max_image_size", "num_views", "checkpoint_sha256"),  # the weights, wherever they are
     "fusion": ("fusion_method",),
     "mesh": ("mesh", "mesh_depth"),
 }
@@ -233,7 +234,6 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
-        "checkpoint": str(checkpoint.resolve()),
         "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "checkpoint")},
     }
