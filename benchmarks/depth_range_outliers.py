@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import colmap_pvs.stereo as stereo_module
-from colmap_pvs.io.maps import read_depth_map
+from colmap_pvs.io.maps import read_depth_map, save_depth_preview
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
@@ -83,6 +83,8 @@ def main() -> None:
     parser.add_argument("--refs", type=int, default=3)
     parser.add_argument("--max_image_size", type=int, default=320)
     parser.add_argument("--checkpoint", type=Path, default=None)
+    parser.add_argument("--previews", type=Path, default=None,
+                        help="also write REF.{clean,1-99,robust}.png depth previews (the clean colours)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     with tempfile.TemporaryDirectory() as tmp:
@@ -96,6 +98,10 @@ def main() -> None:
         sources = {r: sel.references[r].source_names for r in refs}
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
         clean = run(ws, args.checkpoint, args.max_image_size, robust=True)
+        scale = {n: (float(d[d > 0].min()), float(d[d > 0].max())) for n, d in clean.items()}
+        if args.previews is not None:
+            for name in refs:
+                save_depth_preview(args.previews / f"{name}.clean.png", clean[name], *scale[name])
         moved = corrupt(ws / "sparse", refs, args.fraction, args.factor)
         bad = read_sparse_model(ws / "sparse")
         print(f"{moved} points moved {args.factor:g}x farther "
@@ -106,6 +112,9 @@ def main() -> None:
             sigmas = ViewSelectionConfig().depth_outlier_sigmas if robust else 0.0
             ranges = select_views(bad, ViewSelectionConfig(depth_outlier_sigmas=sigmas)).references
             for name in refs:
+                if args.previews is not None:
+                    tag = "robust" if robust else "1-99"
+                    save_depth_preview(args.previews / f"{name}.{tag}.png", maps[name], *scale[name])
                 ok = clean[name] > 0
                 rel = np.abs(maps[name][ok] - clean[name][ok]) / clean[name][ok]
                 lo, hi = ranges[name].depth_range

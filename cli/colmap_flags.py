@@ -37,19 +37,23 @@ def _bool(flag: str, text: str) -> bool:
 
 
 def _max_image_size(flag: str, text: str) -> dict[str, Any]:
+    """= --max_image_size (COLMAP's -1, full size, is our <= 0)"""
     return {"max_image_size": _int(flag, text)}  # COLMAP's -1 (full size) is our <= 0
 
 
 def _geom_consistency(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_consistency"""
     return {"geom_consistency": _bool(flag, text)}
 
 
 def _num_threads(flag: str, text: str) -> dict[str, Any]:
+    """= --threads (COLMAP's -1, all cores, is our 0)"""
     n = _int(flag, text)
     return {"threads": max(n, 0)}  # COLMAP's -1 (all cores) is torch's default, our 0
 
 
 def _gpu_index(flag: str, text: str) -> dict[str, Any]:
+    """= --device: -1 is auto, a GPU index is cuda (the first visible GPU)"""
     items = [s.strip() for s in str(text).split(",") if s.strip()]
     indices = [_int(flag, s) for s in items]
     if not indices or indices == [-1]:
@@ -65,12 +69,14 @@ def _gpu_index(flag: str, text: str) -> dict[str, Any]:
 
 
 def _workspace_format(flag: str, text: str) -> dict[str, Any]:
+    """COLMAP (the only format; PMVS is refused)"""
     if str(text).strip().upper() != "COLMAP":
         raise ConfigError(f"--{flag} {text}: only the COLMAP workspace format is supported (not PMVS)")
     return {}
 
 
 def _config_path(flag: str, text: str) -> dict[str, Any]:
+    """refused when set: patch-match.cfg is read from WORKSPACE/stereo/"""
     if str(text).strip():
         raise ConfigError(
             f"--{flag} {text!r}: colmap-pvs reads WORKSPACE/stereo/patch-match.cfg; copy the file there"
@@ -79,6 +85,7 @@ def _config_path(flag: str, text: str) -> dict[str, Any]:
 
 
 def _project_path(flag: str, text: str) -> dict[str, Any]:
+    """refused: .ini project files are not read"""
     raise ConfigError(f"--{flag} {text!r}: .ini project files are not read; pass the options as flags")
 
 
@@ -118,7 +125,7 @@ def add_colmap_flags(parser: argparse.ArgumentParser) -> None:
         if translate is None:
             help_text = "accepted, no meaning here (ignored with a warning)"
         else:
-            help_text = "translated: " + translate.__name__.lstrip("_")
+            help_text = str(translate.__doc__)
         group.add_argument(f"--{flag}", dest=_DEST + flag, default=argparse.SUPPRESS, metavar="V",
                            help=help_text)
 
