@@ -8,8 +8,8 @@ import subprocess
 import sys
 
 import pytest
-from colmap_pvs.cli.main import main
 import test_stereo
+from colmap_pvs.cli.main import main
 
 from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
