@@ -39,3 +39,12 @@ def test_nan_is_never_a_number():
 def test_fuse_config_refuses_bad_values(key, value):
     with pytest.raises(ConfigError, match=key):
         FuseConfig(workspace_path=Path("w"), **{key: value})
+
+
+@pytest.mark.parametrize(("key", "value"), [("num_threads", -3), ("num_threads", 0), ("mesh_depth", 0),
+                                            ("max_image_size", 4)])
+def test_reconstruct_config_refuses_bad_values(key, value):
+    from colmap_pvs.reconstruct import ReconstructConfig
+
+    with pytest.raises(ConfigError, match=key):
+        ReconstructConfig(image_path=Path("i"), workspace_path=Path("w"), **{key: value})
