@@ -29,3 +29,7 @@ class CheckpointError(ColmapPVSError):
 
 class ShapeError(ColmapPVSError, ValueError):
     """A tensor or array whose shape does not match the documented one."""
+
+
+class OutputError(ColmapPVSError, OSError):
+    """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""

@@ -23,8 +23,9 @@ import torch
 from tqdm import tqdm
 
 from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, WorkspaceError
+from .errors import CheckpointError, ColmapPVSError, ConfigError, WorkspaceError
 from .geometry import sparse_depth_map, to_homogeneous
+from .io.cleanup import remove_orphan_temps
 from .io.images import load_image, resize_image
 from .io.maps import (
     fusion_intrinsics,
@@ -91,6 +92,23 @@ class StereoConfig:
     )
     adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
     adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
+    # issue 11: the field COLMAP's --PatchMatchStereo.geom_consistency maps to (its pass: issue 13).
+    geom_consistency: bool = field(
+        default=True,
+        metadata={"help": "geometric-consistency pass (COLMAP's PatchMatchStereo.geom_consistency)"},
+    )
+
+    def __post_init__(self) -> None:  # issue 11: bad values are refused where they enter
+        from .config import check_range
+
+        check_range("num_views", self.num_views, low=2)
+        check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("threads", self.threads, low=0)
+        check_range("min_sources", self.min_sources, low=1)
+        check_range("adapt_steps", self.adapt_steps, low=0)
+        check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
+        if 0 < self.max_image_size < 16:
+            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
 
 @dataclass
@@ -296,6 +314,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     Images without usable sources or sparse points are skipped with a warning.
     """
     ws, model_sparse = load_workspace(config.workspace_path)
+    remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
@@ -334,6 +353,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         h, w = images.shape[-2:]
         ref = model_sparse.image_by_name(name)
         sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
+        sparse[(sparse < entry.depth_range[0]) | (sparse > entry.depth_range[1])] = 0.0  # issue 11: outliers
         try:
             depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
         except (RuntimeError, MemoryError) as exc:
@@ -353,6 +373,11 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         result.processed.append(name)
         bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
     done = [n for n in refs if _is_done(ws, n)]
+    if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
+        reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
+        raise WorkspaceError(
+            f"no depth map in {str(ws.stereo_dir)!r}: all {len(refs)} reference(s) were skipped ({reasons})"
+        )
     write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = float(np.mean(times)) if times else 0.0
     logger.info(
