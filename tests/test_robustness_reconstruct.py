@@ -102,6 +102,7 @@ def test_sfm_stages_have_progress_bars_and_a_quiet_log(tmp_path, capfd):
 
 def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
     import pycolmap
+
     from colmap_pvs.io.pycolmap_output import pycolmap_log_to_file
 
     with pycolmap_log_to_file(tmp_path / "logs") as folder:
