@@ -69,7 +69,6 @@ def test_outlier_rejection_can_be_switched_off():
 
 def test_only_outlier_hints_are_dropped():
     from colmap_pvs.stereo import drop_outlier_hints
-    from colmap_pvs.views import ViewSelectionConfig
 
     hints = np.array([[5.0, 3.5, 30.0, 1.0, 0.0, 9.0]], dtype=np.float32)
     out = drop_outlier_hints(hints.copy(), (4.0, 8.0), ViewSelectionConfig())
