@@ -33,6 +33,7 @@ import torch  # noqa: E402
 
 from colmap_pvs.config import add_config_arguments, config_from_args  # noqa: E402
 from colmap_pvs.model import PVSNet, PVSNetConfig  # noqa: E402
+from colmap_pvs.model.runtime import estimate_peak_memory  # noqa: E402
 from colmap_pvs.train.losses import depth_loss  # noqa: E402
 
 
@@ -131,6 +132,9 @@ def main() -> None:
     what = "train step (fwd+bwd+Adam)" if args.train else "forward (inference_mode)"
     print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
     print(f"peak RSS: {peak_rss_mb():.0f} MB")
+    if not args.train:
+        est = estimate_peak_memory(args.height, args.width, args.views, config, batch=args.batch)
+        print(f"estimated peak (colmap_pvs.model.runtime.estimate_peak_memory): {est / 2**20:.0f} MB")
 
     if args.profile:
         from torch.profiler import ProfilerActivity, profile

@@ -29,3 +29,7 @@ class CheckpointError(ColmapPVSError):
 
 class ShapeError(ColmapPVSError, ValueError):
     """A tensor or array whose shape does not match the documented one."""
+
+
+class MemoryBudgetError(ColmapPVSError, MemoryError):
+    """A forward pass whose estimated peak memory exceeds the budget; the message names a size that fits."""

@@ -19,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .runtime import chunk_bytes
+
 _NATIVE_LIMIT = 20480  # PyTorch's "native is faster" threshold on B*C*D*H (ConvUtils.h)
 
 
@@ -111,6 +113,36 @@ class Up3d(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.interpolate(self.proj(x), scale_factor=2.0, mode="trilinear", align_corners=False)
+
+    def add_to(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """``self(x) + skip``; without autograd computed into ``skip`` in place, a few rows at a time."""
+        if torch.is_grad_enabled():
+            return self(x) + skip
+        return upsample2_add_(self.proj(x), skip)
+
+
+def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """``out += trilinear_x2(x)`` in place (``align_corners=False``), for ``x`` ``[B, C, D, h, w]`` and
+    ``out`` ``[B, C, 2D, 2h, 2w]``; returns ``out``.
+
+    Works on bands of rows: each band of input rows ``[a, b)`` is upsampled with one row of context on
+    either side (what the interpolation reads; at the image border the band is clamped exactly like the
+    full interpolation), and the rows ``[2a, 2b)`` are added into ``out``. The same numbers as one
+    ``F.interpolate`` followed by an addition, without the full-size temporaries.
+    """
+    B, C, D, h, w = x.shape
+    if out.shape != (B, C, 2 * D, 2 * h, 2 * w):
+        raise ValueError(f"upsample2_add_: out {tuple(out.shape)} is not twice x {tuple(x.shape)}")
+    row_bytes = B * C * 4 * D * w * x.element_size()  # one input row becomes 2 x (2D x 2w) outputs
+    rows = max(1, min(h, chunk_bytes() // max(1, row_bytes) - 2))
+    for a in range(0, h, rows):
+        b = min(h, a + rows)
+        lo, hi = max(0, a - 1), min(h, b + 1)
+        up = F.interpolate(x[:, :, :, lo:hi], scale_factor=2.0, mode="trilinear", align_corners=False)
+        off = 2 * (a - lo)
+        out[:, :, :, 2 * a : 2 * b].add_(up[:, :, :, off : off + 2 * (b - a)])
+        del up
+    return out
 
 
 class Conv(nn.Module):
