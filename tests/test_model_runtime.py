@@ -179,3 +179,24 @@ def test_memory_budget_refuses_up_front_and_names_a_size():
     assert estimate_peak_memory(h, w, 5, cfg) <= budget
     assert estimate_peak_memory(int(h * 1.02) + 16, int(w * 1.02) + 16, 5, cfg) > budget
     assert abs(w / h - 1.5) < 0.05  # the aspect ratio is kept
+
+
+def test_bfloat16_convolutions_are_inference_only():
+    """``conv_dtype="bfloat16"``: same parameters, float32 outputs, close depths; training stays float32."""
+    torch.manual_seed(0)
+    fp32 = PVSNet(SHIPPED_LIKE).eval()
+    _randomize_batch_norms(fp32)
+    bf16 = PVSNet(replace_config(SHIPPED_LIKE, conv_dtype="bfloat16")).eval()
+    bf16.load_state_dict(fp32.state_dict(), strict=True)
+    assert fp32.state_dict().keys() == bf16.state_dict().keys()
+    inputs = make_inputs(1, 3, 48, 64)
+    with torch.inference_mode():
+        a = fp32(*inputs[:5], sparse_depth=inputs[5])
+        b = bf16(*inputs[:5], sparse_depth=inputs[5])
+    assert b.depth.dtype == b.confidence.dtype == b.visibility.dtype == torch.float32
+    diff = (a.depth - b.depth).abs() / (6.0 - 1.0)
+    assert 0 < float(diff.max()) < 0.05 and float(diff.median()) < 5e-3
+    with torch.enable_grad():
+        ga = fp32(*inputs[:5], sparse_depth=inputs[5])
+        gb = bf16(*inputs[:5], sparse_depth=inputs[5])
+    torch.testing.assert_close(ga.depth, gb.depth, atol=0, rtol=0)

@@ -45,7 +45,7 @@ from .cost import (
     guidance_weights,
 )
 from .features import FeatureNet, normalized_intensity_channels
-from .layers import to_volume_format
+from .layers import set_compute_dtype, to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
 from .runtime import plane_chunk
 from .visibility import CostAccumulator, VisibilityNet, normalized_weights, truncate_visibility
@@ -125,6 +125,7 @@ class PVSNet(nn.Module):
             StageRegularizer(cfg.groups_per_stage[k], cfg.stage_channels[k - 1])
             for k in range(1, cfg.num_stages)
         )
+        set_compute_dtype(self, torch.bfloat16 if cfg.conv_dtype == "bfloat16" else None)
 
     # ------------------------------------------------------------------ checks
 
