@@ -50,7 +50,9 @@ from .regularization import CoarseRegularizer, StageRegularizer
 from .runtime import plane_chunk
 from .visibility import CostAccumulator, VisibilityNet, normalized_weights, truncate_visibility
 from .warping import (
+    grid_from_rays,
     homography_grid,
+    homography_rays,
     hypothesis_depths,
     plane_range,
     relative_pose,
@@ -412,7 +414,7 @@ class PVSNet(nn.Module):
         out = accumulate
         if out is None:
             out = torch.empty(B, G + (1 if n > 0 else 0), D, h, w, dtype=feats.dtype, device=feats.device)
-        pose = relative_pose(cam_from_world, src)
+        rays, b = homography_rays(K[:, 0], K[:, src], relative_pose(cam_from_world, src), h, w, feats.dtype)
         ref, source = feats[:, 0], feats[:, src]
         # The reference side of the correlation, weighted and scaled once per source.
         r_learned = correlation_reference(ref[:, :learned], G, pixel_weight)
@@ -420,7 +422,7 @@ class PVSNet(nn.Module):
         step = plane_chunk(B * C * h * w * feats.element_size(), D)
         for d0 in range(0, D, step):
             d1 = min(D, d0 + step)
-            grid = homography_grid(K[:, 0], K[:, src], pose, depths[:, d0:d1], h, w)
+            grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
             warped = warp_features(source, grid, d1 - d0)
             del grid
             add = accumulate is not None
