@@ -72,9 +72,14 @@ def machine_peak(threads: int, fma_units: int | None = None, clock_ghz: float | 
     else:
         isa, lanes = "SSE", 4
     has_fma = "fma" in flags or "avx512f" in flags
-    units = fma_units if fma_units is not None else 2
+    # AMD Zen 4 (family 25 with AVX-512) executes a 512-bit FMA as two halves on its two 256-bit FMA
+    # pipes: 16 fp32 FMAs per cycle, i.e. one 512-bit unit. Zen 5 (family 26) has full-width units.
+    zen4 = cpu.get("vendor_id") == "AuthenticAMD" and cpu.get("cpu family") == "25" and lanes == 16
+    units = fma_units if fma_units is not None else (1 if zen4 else 2)
     assumptions = []
-    if fma_units is None:
+    if fma_units is None and zen4:
+        assumptions.append("AMD Zen 4: AVX-512 double-pumped on 2x256-bit FMA pipes = 1 512-bit unit")
+    elif fma_units is None:
         assumptions.append("2 FMA units per core assumed (server Xeon/EPYC; some SKUs have 1: --fma_units)")
     if clock_ghz is None:
         mhz = ls.get("CPU max MHz") or cpu.get("cpu MHz")
@@ -83,7 +88,10 @@ def machine_peak(threads: int, fma_units: int | None = None, clock_ghz: float | 
             src = "lscpu 'CPU max MHz'" if ls.get("CPU max MHz") else "/proc/cpuinfo 'cpu MHz' (nominal)"
         except (TypeError, ValueError):
             clock_ghz, src = 2.0, "unknown, 2.0 GHz assumed"
-        assumptions.append(f"clock {clock_ghz:.2f} GHz from {src}; turbo/AVX-512 down-clocking ignored")
+        assumptions.append(
+            f"clock {clock_ghz:.2f} GHz from {src}; turbo/AVX-512 down-clocking ignored (a VM's 'cpu MHz' "
+            "is the base clock: pass --clock_ghz with the boost clock for the stricter peak)"
+        )
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     used = min(threads, cores) if threads > 0 else cores
     flop_per_cycle = lanes * (2 if has_fma else 1) * units

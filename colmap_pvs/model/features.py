@@ -53,10 +53,9 @@ class FeatureNet(nn.Module):
         for i in range(x.shape[0]):
             one = self._forward(x[i : i + 1], levels)
             if not outs:
+                shape = lambda t: (x.shape[0], *t.shape[1:])  # noqa: E731
                 outs = [
-                    torch.empty((x.shape[0], *t.shape[1:]), dtype=t.dtype, device=t.device).contiguous(
-                        memory_format=torch.channels_last
-                    )
+                    torch.empty(shape(t), dtype=t.dtype, device=t.device, memory_format=torch.channels_last)
                     for t in one
                 ]
             for buf, t in zip(outs, one, strict=True):
