@@ -31,7 +31,7 @@ if "--omp_passive" in sys.argv:  # must happen before the OpenMP runtime starts 
 
 import torch  # noqa: E402
 
-from colmap_pvs.config import add_config_arguments, config_from_args  # noqa: E402
+from colmap_pvs.config import add_config_arguments, config_from_args, replace_config  # noqa: E402
 from colmap_pvs.model import PVSNet, PVSNetConfig  # noqa: E402
 from colmap_pvs.model.runtime import estimate_peak_memory  # noqa: E402
 from colmap_pvs.train.losses import depth_loss  # noqa: E402
@@ -81,6 +81,9 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=5, help="N, reference included")
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument(
+        "--checkpoint", default=None, help="time this checkpoint's model (config overrides still apply)"
+    )
     parser.add_argument("--repeats", type=int, default=2, help="timed runs (after one warm-up)")
     parser.add_argument("--train", action="store_true", help="time a training step (forward+backward+Adam)")
     parser.add_argument("--no_flops", action="store_true", help="skip the FLOP count")
@@ -92,8 +95,20 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(args.threads)
-    config = config_from_args(PVSNetConfig, args)
-    model = PVSNet(config)
+    if args.checkpoint:
+        from colmap_pvs.config import config_to_dict
+        from colmap_pvs.model import load_checkpoint
+
+        loaded, _ = load_checkpoint(args.checkpoint)
+        defaults = config_to_dict(PVSNetConfig())
+        overrides = config_to_dict(config_from_args(PVSNetConfig, args)).items()
+        given = {k: v for k, v in overrides if v != defaults[k]}  # flags given on the command line
+        config = replace_config(loaded.config, **given)
+        model = PVSNet(config)
+        model.load_state_dict(loaded.state_dict())
+    else:
+        config = config_from_args(PVSNetConfig, args)
+        model = PVSNet(config)
     inputs = make_inputs(args.batch, args.views, args.height, args.width)
     print(f"config: {config}")
     print(
@@ -130,7 +145,8 @@ def main() -> None:
         run()
         times.append(time.perf_counter() - t0)
     what = "train step (fwd+bwd+Adam)" if args.train else "forward (inference_mode)"
-    print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
+    if times:
+        print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
     print(f"peak RSS: {peak_rss_mb():.0f} MB")
     if not args.train:
         est = estimate_peak_memory(args.height, args.width, args.views, config, batch=args.batch)
