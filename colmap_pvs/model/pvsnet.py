@@ -420,12 +420,12 @@ class PVSNet(nn.Module):
         r_learned = correlation_reference(ref[:, :learned], G, pixel_weight)
         r_extra = correlation_reference(ref[:, learned:], 1, pixel_weight) if n > 0 else None
         step = plane_chunk(B * C * h * w * feats.element_size(), D)
+        add = accumulate is not None
         for d0 in range(0, D, step):
             d1 = min(D, d0 + step)
             grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
             warped = warp_features(source, grid, d1 - d0)
             del grid
-            add = accumulate is not None
             correlate_into(r_learned, warped[:, :learned], out[:, :G, d0:d1], accumulate=add)
             if r_extra is not None:
                 correlate_into(r_extra, warped[:, learned:], out[:, G:, d0:d1], accumulate=add)
