@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.nn.functional as F
+from test_model_pvsnet import make_inputs as pvsnet_inputs
 from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import replace_config
@@ -39,18 +40,13 @@ SHIPPED_LIKE = PVSNetConfig(
 
 
 def make_inputs(B: int, N: int, H: int, W: int, seed: int = 0):
-    g = torch.Generator().manual_seed(seed)
-    images = torch.rand(B, N, 3, H, W, generator=g)
-    K = torch.tensor([[0.9 * W, 0.0, W / 2], [0.0, 0.9 * W, H / 2], [0.0, 0.0, 1.0]])
-    intrinsics = K.expand(B, N, 3, 3).clone()
-    poses = torch.eye(4).expand(B, N, 4, 4).clone()
-    for i in range(1, N):
-        poses[:, i, 0, 3] = 0.1 * i * (-1) ** i
-        poses[:, i, 1, 3] = 0.03 * i
+    """``test_model_pvsnet``'s rig (depths 1..6) plus sparse hints on 2 % of the pixels."""
+    images, intrinsics, poses, dmin, dmax = pvsnet_inputs(B, N, H, W, seed)
+    g = torch.Generator().manual_seed(seed + 1)
     sparse = torch.zeros(B, 1, H, W)
     hit = torch.rand(B, 1, H, W, generator=g) < 0.02
     sparse[hit] = 1.0 + 5.0 * torch.rand(int(hit.sum()), generator=g)
-    return images, intrinsics, poses, torch.full((B,), 1.0), torch.full((B,), 6.0), sparse
+    return images, intrinsics, poses, dmin, dmax, sparse
 
 
 def _randomize_batch_norms(model: torch.nn.Module, seed: int = 1) -> None:
