@@ -15,6 +15,8 @@ In eval mode the batch norms are folded into the convolution weights on the fly.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -29,6 +31,16 @@ _HAS_MKLDNN_CONV = hasattr(torch, "mkldnn_convolution")
 
 def _onednn_ok(x: torch.Tensor) -> bool:
     return x.device.type == "cpu" and x.dtype == torch.float32 and torch.backends.mkldnn.is_available()
+
+
+@functools.cache
+def _onednn_low_precision_ok(dtype: torch.dtype) -> bool:
+    """Whether oneDNN has native ``dtype`` (bfloat16) convolutions on this CPU (else PyTorch's own
+    kernels are used, slower but available everywhere)."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    check = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    return dtype == torch.bfloat16 and check is not None and bool(check())
 
 
 def _needs_group_trick(x: torch.Tensor) -> bool:
@@ -56,7 +68,7 @@ def conv_nd(
     if compute_dtype is not None and not torch.is_grad_enabled() and x.is_floating_point():
         x, weight = x.to(compute_dtype), weight.to(compute_dtype)
         bias = None if bias is None else bias.to(compute_dtype)
-        if x.device.type == "cpu" and _HAS_MKLDNN_CONV and torch.backends.mkldnn.is_available():
+        if x.device.type == "cpu" and _HAS_MKLDNN_CONV and _onednn_low_precision_ok(x.dtype):
             n = x.dim() - 2
             return torch.mkldnn_convolution(x, weight, bias, [padding] * n, [stride] * n, [1] * n, 1)
         return conv(x, weight, bias, stride, padding)
