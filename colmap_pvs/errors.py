@@ -33,3 +33,7 @@ class ShapeError(ColmapPVSError, ValueError):
 
 class OutputError(ColmapPVSError, OSError):
     """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""
+
+
+class MemoryBudgetError(ColmapPVSError, MemoryError):
+    """A forward pass whose estimated peak memory exceeds the budget; the message names a size that fits."""

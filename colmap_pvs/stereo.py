@@ -37,6 +37,7 @@ from .io.maps import (
     write_normal_map,
 )
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
+from .model.runtime import check_memory_budget
 from .normals import depth_to_normals
 from .types import Image, SparseModel
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
@@ -368,6 +369,8 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
         drop_outlier_hints(sparse, entry.depth_range, selection.config)
         try:
+            if device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
+                check_memory_budget(h, w, len(sources) + 1, net.config)
             depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
         except (RuntimeError, MemoryError) as exc:
             if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
