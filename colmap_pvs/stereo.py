@@ -70,8 +70,8 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
-#: Bumped when a pass's output changes for the same settings (part of every provenance fingerprint).
-STEREO_FORMAT_VERSION = 2
+#: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
+FORMAT_VERSIONS = {"photometric": 2, "geometric": 3}
 Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
@@ -473,7 +473,7 @@ def _fingerprint(settings: dict) -> str:
 def _settings(ctx: StereoContext, stage: Stage, keys: tuple[str, ...]) -> dict:
     cfg = config_to_dict(ctx.config)
     out = {k: cfg[k] for k in keys}
-    out.update(stage=stage, format_version=STEREO_FORMAT_VERSION)
+    out.update(stage=stage, format_version=FORMAT_VERSIONS[stage])
     return out
 
 
@@ -624,19 +624,19 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
 # --------------------------------------------------------------------------- geometric pass
 
 
-def geometric_confidence(net_confidence: np.ndarray, agree: np.ndarray, checked: np.ndarray,
-                         depth_error: np.ndarray, max_depth_error: float) -> np.ndarray:
+def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None) -> np.ndarray:
     """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
 
-    ``c = p * a``: the network's probability mass ``p`` times the multi-view agreement
-    ``a = sum_s agree_s * (1 - e_s / e_max) / S`` over the ``S`` sources, ``e_s`` the relative depth
-    error to source ``s`` (``e_max = geom_max_depth_error``). Pixels that many sources confirm tightly
-    rank first; a pixel no source confirms has confidence 0.
+    ``c = sum_s v_s * agree_s / S``: the fraction of the ``S`` sources that confirm the pixel, each
+    weighted by the network's learned visibility ``v_s`` of that source at the pixel (``agree``
+    ``[S, H, W]``, ``visibility`` ``[S, H, W]`` or ``None`` for all ones). Chosen by measurement on
+    hololens-dev (``benchmarks/RESULTS.md``): it ranks errors better than the network's probability
+    mass (which does not rank the consistent pixels at all), the agreement count alone, or the
+    reprojection and depth errors.
     """
     S = max(agree.shape[0], 1)
-    closeness = np.where(agree, 1.0 - np.clip(depth_error / max_depth_error, 0.0, 1.0), 0.0)
-    a = closeness.sum(0) / S
-    return np.clip(net_confidence * a, 0.0, 1.0).astype(np.float32)
+    weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
+    return np.clip(weighted.sum(0) / S, 0.0, 1.0).astype(np.float32)
 
 
 def _load_photometric(ctx: StereoContext, name: str):
@@ -693,12 +693,11 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     t0 = time.perf_counter()
     ref = _load_photometric(ctx, name)
     srcs = [_load_photometric(ctx, s) for s in sources]
-    net_conf = read_array(ws.confidence_map_path(name, "photometric")).reshape(ref.depth.shape)
     h, w = ref.depth.shape
     all_sources = list(prov.get("sources", []))
     vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
     vis = None
-    if cfg.geom_min_visibility > 0 and vis_path.is_file():
+    if vis_path.is_file():
         coarse = read_array(vis_path)
         coarse = coarse[..., None] if coarse.ndim == 2 else coarse
         if coarse.shape[2] == len(all_sources):
@@ -718,7 +717,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
     timings["consistency"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    conf = geometric_confidence(net_conf, res.agree, res.checked, res.depth_error, cfg.geom_max_depth_error)
+    conf = geometric_confidence(res.agree, vis)
     keep &= conf >= cfg.geom_min_confidence
     depth = np.where(keep, depth, 0.0).astype(np.float32)
     conf = np.where(keep, conf, 0.0).astype(np.float32)

@@ -285,7 +285,7 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     outside[40:70, 60:100] = False
     assert (geo[outside] > 0).mean() > 0.4
     ok = geo > 0
-    np.testing.assert_allclose(geo[ok], photo[ok], rtol=0.01)
+    np.testing.assert_allclose(geo[ok], photo[ok], rtol=0.03)  # averaged within geom_max_depth_error
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
     assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
