@@ -62,7 +62,7 @@ from .io.maps import (
     write_normal_map,
 )
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
-from .normals import depth_to_normals
+from .normals import depth_to_normals, fit_normals
 from .types import Image, SparseModel
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
@@ -71,7 +71,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 2, "geometric": 3}
+FORMAT_VERSIONS = {"photometric": 2, "geometric": 4}
 Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
@@ -723,10 +723,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     conf = np.where(keep, conf, 0.0).astype(np.float32)
     timings["confidence"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if cfg.geom_average_depth:
-        normals = depth_to_normals(depth, ref.K)
-    else:
-        normals = np.where(keep[..., None], ref.normals, 0.0).astype(np.float32)
+    normals = fit_normals(depth, ref.K)
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
