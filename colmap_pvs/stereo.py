@@ -83,6 +83,7 @@ GEOMETRIC_SETTINGS = (
     "geom_max_depth_error",
     "geom_max_normal_error",
     "geom_min_visibility",
+    "geom_num_sources",
     "geom_average_depth",
     "geom_min_confidence",
 )
@@ -141,6 +142,13 @@ class StereoConfig:
     geom_min_visibility: float = field(
         default=0.2,
         metadata={"help": "geometric pass: consult a source only where its learned visibility >= this"},
+    )
+    geom_num_sources: int = field(
+        default=10,
+        metadata={
+            "help": "geometric pass: check against up to this many sources with photometric maps: the "
+            "network's sources, then the next best by view score (0: the network's sources only)"
+        },
     )
     geom_average_depth: bool = field(
         default=True,
@@ -676,9 +684,19 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     prov = read_provenance(ws, name, "photometric")
     if prov is None or not ws.depth_map_path(name, "photometric").is_file():
         return RefOutcome(name, "geometric", "skipped", "its photometric maps do not exist")
-    sources = [s for s in prov.get("sources", [])
-               if ws.depth_map_path(s, "photometric").is_file() and read_provenance(ws, s, "photometric")]
+    def has_maps(s: str) -> bool:
+        path = ws.depth_map_path(s, "photometric")
+        return path.is_file() and read_provenance(ws, s, "photometric") is not None
+
+    sources = [s for s in prov.get("sources", []) if has_maps(s)]
     missing = [s for s in prov.get("sources", []) if s not in sources]
+    entry = ctx.selection.references.get(name)
+    if cfg.geom_num_sources > len(sources) and entry is not None:  # the next best views with maps
+        for s in entry.ranked_names:
+            if len(sources) >= cfg.geom_num_sources:
+                break
+            if s not in sources and s != name and has_maps(s):
+                sources.append(s)
     settings = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
     settings.update(
         reference=prov["fingerprint"],
@@ -700,9 +718,10 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     if vis_path.is_file():
         coarse = read_array(vis_path)
         coarse = coarse[..., None] if coarse.ndim == 2 else coarse
-        if coarse.shape[2] == len(all_sources):
-            coarse = coarse[..., [all_sources.index(s) for s in sources]]
-            vis = upsample_visibility(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
+        if coarse.shape[2] == len(all_sources):  # views the network did not see count as visible
+            up = upsample_visibility(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
+            ones = np.ones((h, w), np.float32)
+            vis = np.stack([up[all_sources.index(s)] if s in all_sources else ones for s in sources])
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     res = check_consistency(
@@ -727,7 +746,6 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
-    entry = ctx.selection.references.get(name)
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
