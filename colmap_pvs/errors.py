@@ -29,3 +29,11 @@ class CheckpointError(ColmapPVSError):
 
 class ShapeError(ColmapPVSError, ValueError):
     """A tensor or array whose shape does not match the documented one."""
+
+
+class OutputError(ColmapPVSError, OSError):
+    """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""
+
+
+class MemoryBudgetError(ColmapPVSError, MemoryError):
+    """A forward pass whose estimated peak memory exceeds the budget; the message names a size that fits."""
