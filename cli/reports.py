@@ -15,6 +15,13 @@ def report_stereo(result) -> str:
         f"computed: {len(result.processed)}  already done: {len(result.already_done)}  "
         f"skipped: {len(result.skipped)}  seconds/image: {result.seconds_per_image:.2f}",
     ]
+    if getattr(result, "pass_seconds", {}).get("geometric") is not None:  # issue 13: the second pass
+        lines.append(
+            f"geometric pass: computed: {len(result.geometric_processed)}  already done: "
+            f"{len(result.geometric_done)}  skipped: {len(result.geometric_skipped)}  "
+            f"({result.pass_seconds['geometric']:.1f} s; "
+            f"photometric {result.pass_seconds['photometric']:.1f} s)"
+        )
     if result.adapt_seconds > 0:
         lines.append(
             f"test-time adaptation: {result.adapt_seconds:.1f} s "

@@ -71,6 +71,13 @@ def report_depth(metrics, per_image: bool = True) -> str:
             + ", ".join(metrics.missing_gt[:10])
             + (" ..." if len(metrics.missing_gt) > 10 else "")
         )
+    if metrics.sparsification is not None:  # AbsRel of the most-confident fraction kept vs. the oracle
+        sp = metrics.sparsification
+        lines.append("sparsification (AbsRel of the most confident fraction kept / oracle):")
+        lines.append("  " + "  ".join(
+            f"{f:.0%}: {_fmt(e, '.4f')}/{_fmt(o, '.4f')}"
+            for f, e, o in zip(sp["fractions"], sp["error"], sp["oracle"], strict=True)
+        ))
     if metrics.checkpoint_used is None:
         ckpt = "unknown (no stereo/colmap_pvs_stereo.json)"
     elif metrics.checkpoint_sha256 is None:

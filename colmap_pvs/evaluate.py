@@ -457,15 +457,48 @@ class DepthMetrics:
     output_path: Path
     checkpoint_used: str | None = None
     checkpoint_sha256: str | None = None
+    sparsification: dict[str, list[float]] | None = None
 
     def to_json(self) -> dict:
         return {
             "note": METRICS_NOTE,
             "pooled": self.pooled.to_json(),
+            "sparsification": self.sparsification,
             "per_image": {k: v.to_json() for k, v in self.per_image.items()},
             "missing_gt": list(self.missing_gt),
             "missing_prediction": list(self.missing_prediction),
         }
+
+
+SPARSIFICATION_FRACTIONS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+
+def sparsification_curve(
+    confidence: np.ndarray, error: np.ndarray, fractions: tuple[float, ...] = SPARSIFICATION_FRACTIONS
+) -> dict[str, list[float]]:
+    """Mean ``error`` of the most-confident ``fraction`` of pixels, and of the oracle ranking.
+
+    Args:
+        confidence, error: ``[P]`` per pixel (higher confidence = trusted; error e.g. AbsRel).
+
+    Returns:
+        ``{"fractions": [...], "error": [...], "oracle": [...]}``: ``error[i]`` is the mean error of
+        the ``ceil(fractions[i] * P)`` pixels of highest confidence (ties broken by pixel order),
+        ``oracle[i]`` that of the pixels of lowest true error; ``nan`` when ``P == 0``.
+    """
+    confidence = np.asarray(confidence, np.float64).ravel()
+    error = np.asarray(error, np.float64).ravel()
+    if confidence.shape != error.shape:
+        raise ShapeError(f"confidence {confidence.shape} and error {error.shape} differ")
+    P = error.size
+    out: dict[str, list[float]] = {"fractions": [float(f) for f in fractions], "error": [], "oracle": []}
+    by_conf = np.cumsum(error[np.argsort(-confidence, kind="stable")])
+    by_err = np.cumsum(np.sort(error))
+    for f in fractions:
+        n = int(math.ceil(f * P))
+        out["error"].append(float(by_conf[n - 1] / n) if n > 0 else float("nan"))
+        out["oracle"].append(float(by_err[n - 1] / n) if n > 0 else float("nan"))
+    return out
 
 
 def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
@@ -476,7 +509,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         ConfigError: missing GT folder, no GT for any predicted image, integer GT without scale.
         MapFormatError: unreadable prediction or GT file.
     """
-    from .io.maps import read_depth_map
+    from .io.maps import read_array, read_depth_map
     from .io.workspace import detect_workspace
 
     ws = detect_workspace(config.workspace_path, create_stereo_dirs=False)
@@ -496,6 +529,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
     missing_pred: list[str] = []
     warned_aspect = False
     missing_shape: tuple[int, ...] | None = None
+    conf_err: list[tuple[np.ndarray, np.ndarray]] = []
     for name in tqdm(names, desc="evaluate depth", unit="image", disable=len(names) < 20):
         gt_path = find_gt_depth(gt_dir, name, config.gt_pattern)
         if gt_path is None:
@@ -533,6 +567,15 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
                 )
                 warned_aspect = True
         sums = _depth_sums(pred, gt, rel_t, abs_t, config.max_gt_depth, config.scale_alignment)
+        conf_path = ws.confidence_map_path(name, config.kind)
+        if name in predicted_set and conf_path.is_file() and config.scale_alignment == "none":
+            conf = read_array(conf_path).reshape(-1)
+            if conf.size == pred.size:  # sparsification: pooled (confidence, AbsRel) of valid pixels
+                g = resize_nearest(gt, *pred.shape) if gt.shape != pred.shape else gt
+                ok = (pred > 0) & (g > 0) & np.isfinite(g)
+                if config.max_gt_depth > 0:
+                    ok &= g <= config.max_gt_depth
+                conf_err.append((conf[ok.ravel()], np.abs(pred[ok] - g[ok]) / g[ok]))
         if sums.num_gt == 0:
             logger.warning("GT depth %s has no valid pixel", gt_path)
         per_image[name] = sums.stats()
@@ -548,6 +591,11 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         pooled_stats = dataclasses.replace(pooled_stats, scale=float("nan"))  # per-image scales differ
     stereo_info, ckpt, sha = _stereo_run_info(ws.stereo_dir)
     out = Path(config.output_path) if config.output_path is not None else ws.stereo_dir / "metrics.json"
+    sparsification = None
+    if conf_err:
+        sparsification = sparsification_curve(
+            np.concatenate([c for c, _ in conf_err]), np.concatenate([e for _, e in conf_err])
+        )
     metrics = DepthMetrics(
         per_image=per_image,
         pooled=pooled_stats,
@@ -557,6 +605,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         output_path=out,
         checkpoint_used=ckpt,
         checkpoint_sha256=sha,
+        sparsification=sparsification,
     )
     save_config(
         config,

@@ -453,7 +453,9 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         depth = np.where(np.isfinite(depth) & (np.abs(normals).sum(axis=2) > 0), depth, 0.0).astype(
             np.float32
         )
-        conf_path = ws.confidence_map_path(name)
+        conf_path = ws.confidence_map_path(name, config.input_type)
+        if not conf_path.is_file():  # maps written before confidences were stored per kind
+            conf_path = ws.confidence_map_path(name)
         if config.min_confidence > 0 and conf_path.is_file():
             conf = read_array(conf_path)
             if conf.shape[:2] != (h, w):

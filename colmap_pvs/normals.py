@@ -66,3 +66,42 @@ def depth_to_normals(depth: np.ndarray, K: np.ndarray, *, max_relative_jump: flo
     facing = np.sum(n * points, axis=-1) > 0
     n[facing] *= -1.0
     return n.astype(np.float32)
+
+
+def fit_normals(depth: np.ndarray, K: np.ndarray, *, window: int = 7, max_relative_jump: float = 0.05,
+                min_support: float = 0.5) -> np.ndarray:
+    """Camera-facing unit normals of a depth map from a local least-squares plane fit.
+
+    The per-pixel tangent-plane normals of :func:`depth_to_normals` (before normalisation, i.e.
+    area-weighted cross products of the tangents; none across a depth jump larger than
+    ``max_relative_jump``) are summed over a ``window x window`` neighbourhood and normalised: for a
+    locally planar patch this is the plane fit of the neighbourhood, and single-pixel noise of the
+    depth averages out instead of tilting the normal. Pixels whose window has fewer than
+    ``min_support`` of its pixels with a normal get none (zero).
+
+    Args:
+        depth: ``[H, W]`` z-depth, 0 = invalid; K: ``[3, 3]`` intrinsics of this resolution.
+
+    Returns:
+        ``[H, W, 3]`` float32 unit normals facing the camera (``dot(n, x) < 0``), zero where undefined.
+    """
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ShapeError(f"depth must be [H, W], got shape {depth.shape}")
+    if window < 1 or window % 2 == 0:
+        raise ShapeError(f"window must be a positive odd number, got {window}")
+    base = depth_to_normals(depth, K, max_relative_jump=max_relative_jump).astype(np.float32)
+    has = np.any(base != 0, axis=-1)
+    points = backproject_depth(depth, K)
+    weight = np.where(has, 1.0, 0.0).astype(np.float32)
+    summed = cv2.boxFilter(base * weight[..., None], -1, (window, window), normalize=False,
+                           borderType=cv2.BORDER_CONSTANT)
+    support = cv2.boxFilter(weight, -1, (window, window), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    norm = np.linalg.norm(summed, axis=-1, keepdims=True)
+    ok = (depth > 0) & has & (support >= min_support) & (norm[..., 0] > 1e-6)
+    n = np.where(ok[..., None], summed / np.maximum(norm, 1e-12), 0.0)
+    facing = np.sum(n * points, axis=-1) > 0
+    n[facing] *= -1.0
+    return n.astype(np.float32)

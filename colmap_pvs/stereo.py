@@ -1,19 +1,41 @@
 """The ``stereo`` step: PVSNet depth and normal maps for every image of a COLMAP workspace.
 
-A drop-in replacement for COLMAP's ``patch_match_stereo``: it writes
-``stereo/depth_maps/NAME.{geometric,photometric}.bin`` and
-``stereo/normal_maps/NAME.{geometric,photometric}.bin`` plus ``stereo/fusion.cfg``, so
-COLMAP's own ``stereo_fusion`` runs on the result unchanged.
+A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two passes:
 
-As in COLMAP, the reference images are those listed in ``stereo/patch-match.cfg``
-when it exists (explicit source lists, ``__auto__, N`` and ``__all__`` are all
-understood), otherwise every registered image with sparse points.
+- **photometric** (network): ``stereo/depth_maps/NAME.photometric.bin``,
+  ``stereo/normal_maps/NAME.photometric.bin``, ``stereo/confidence_maps/NAME.photometric.bin``
+  (probability mass of the network) and ``stereo/visibility_maps/NAME.bin`` (the network's learned
+  per-source visibility, ``[h/4, w/4, S]``, sources in the provenance file);
+- **geometric** (``geom_consistency``, on by default), once every photometric map exists: each
+  reference's photometric depth is checked forward-backward against its sources' photometric maps
+  (:mod:`colmap_pvs.consistency`), consulting only the sources the network found visible; pixels that
+  agree with fewer than ``geom_min_consistent`` sources are set invalid, the rest are averaged with
+  the agreeing sources' depths. Writes ``NAME.geometric.bin`` depth, normal and confidence maps.
+
+Every output group has a provenance file ``stereo/provenance/NAME.KIND.json`` (the resolved settings
+that affect that pass, the checkpoint's sha256 and, for the geometric pass, the photometric
+fingerprints it read). A pass of a reference is *done* when its depth map (written last) is readable
+and its provenance matches the current run; anything else is recomputed. ``stereo/fusion.cfg`` lists
+the references whose final maps exist, so COLMAP's ``stereo_fusion --input_type geometric`` (or
+``photometric`` with ``geom_consistency`` off) runs unchanged.
+
+As in COLMAP, the reference images are those listed in ``stereo/patch-match.cfg`` when it exists
+(explicit source lists, ``__auto__, N`` and ``__all__`` are all understood), otherwise every
+registered image with sparse points.
+
+Python users (and the Ray backend) use :func:`prepare_stereo` once, then :func:`process_reference`
+per reference and pass; :func:`run_stereo` is the local backend.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import threading
 import time
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -22,13 +44,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, ConfigError, WorkspaceError
+from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
+from .consistency import SourceMaps, check_consistency
+from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, WorkspaceError
+from .evaluate import file_sha256
 from .geometry import sparse_depth_map, to_homogeneous
 from .io.cleanup import remove_orphan_temps
 from .io.images import load_image, resize_image
 from .io.maps import (
     fusion_intrinsics,
+    read_array,
+    read_depth_map,
+    read_normal_map,
     save_depth_preview,
     save_normal_preview,
     save_scalar_preview,
@@ -38,7 +65,7 @@ from .io.maps import (
 )
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
 from .model.runtime import check_memory_budget
-from .normals import depth_to_normals
+from .normals import depth_to_normals, fit_normals
 from .types import Image, SparseModel
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
@@ -46,6 +73,23 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
+#: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
+FORMAT_VERSIONS = {"photometric": 2, "geometric": 4}
+Stage = Literal["photometric", "geometric"]
+
+#: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
+PHOTOMETRIC_SETTINGS = ("num_views", "max_image_size", "min_confidence", "sparse_guidance", "sparse_prior")
+#: Settings that change the geometric maps (with the photometric fingerprints they read).
+GEOMETRIC_SETTINGS = (
+    "geom_min_consistent",
+    "geom_max_reproj_error",
+    "geom_max_depth_error",
+    "geom_max_normal_error",
+    "geom_min_visibility",
+    "geom_num_sources",
+    "geom_average_depth",
+    "geom_min_confidence",
+)
 
 
 @dataclass(frozen=True)
@@ -63,7 +107,8 @@ class StereoConfig:
     device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device"})
     overwrite: bool = field(default=False, metadata={"help": "recompute images whose maps already exist"})
     min_confidence: float = field(
-        default=0.3, metadata={"help": "pixels with confidence below this are set invalid (depth 0)"}
+        default=0.3,
+        metadata={"help": "photometric pass: pixels with network confidence below this are set invalid"},
     )
     sparse_guidance: Literal["checkpoint", "on", "off"] = field(
         default="checkpoint",
@@ -93,13 +138,44 @@ class StereoConfig:
     )
     adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
     adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
-    # issue 11: the field COLMAP's --PatchMatchStereo.geom_consistency maps to (its pass: issue 13).
     geom_consistency: bool = field(
         default=True,
-        metadata={"help": "geometric-consistency pass (COLMAP's PatchMatchStereo.geom_consistency)"},
+        metadata={"help": "run the geometric pass (writes *.geometric.bin); off: photometric maps only "
+                  "(COLMAP's PatchMatchStereo.geom_consistency)"},
+    )
+    geom_min_consistent: int = field(
+        default=2, metadata={"help": "geometric pass: a pixel must agree with at least this many sources"}
+    )
+    geom_max_reproj_error: float = field(
+        default=2.0, metadata={"help": "geometric pass: max forward-backward reprojection error (px)"}
+    )
+    geom_max_depth_error: float = field(
+        default=0.03, metadata={"help": "geometric pass: max relative depth error |z'-d|/d"}
+    )
+    geom_max_normal_error: float = field(
+        default=180.0, metadata={"help": "geometric pass: max normal angle (degrees; >= 180 disables)"}
+    )
+    geom_min_visibility: float = field(
+        default=0.2,
+        metadata={"help": "geometric pass: consult a source only where its learned visibility >= this"},
+    )
+    geom_num_sources: int = field(
+        default=10,
+        metadata={
+            "help": "geometric pass: check against up to this many sources with photometric maps: the "
+            "network's sources, then the next best by view score (0: the network's sources only)"
+        },
+    )
+    geom_average_depth: bool = field(
+        default=True,
+        metadata={"help": "geometric pass: average the depth with the agreeing sources' reprojected depths"},
+    )
+    geom_min_confidence: float = field(
+        default=0.0,
+        metadata={"help": "geometric pass: pixels with geometric confidence below this are invalid"},
     )
 
-    def __post_init__(self) -> None:  # issue 11: bad values are refused where they enter
+    def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
         from .config import check_range
 
         check_range("num_views", self.num_views, low=2)
@@ -108,13 +184,39 @@ class StereoConfig:
         check_range("min_sources", self.min_sources, low=1)
         check_range("adapt_steps", self.adapt_steps, low=0)
         check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
+        check_range("geom_min_visibility", self.geom_min_visibility, low=0.0, high=1.0)
+        check_range("geom_num_sources", self.geom_num_sources, low=0)
         if 0 < self.max_image_size < 16:
             raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
+        if self.geom_min_consistent < 1:
+            raise ConfigError(f"geom_min_consistent must be >= 1, got {self.geom_min_consistent}")
+        for name in ("geom_max_reproj_error", "geom_max_depth_error", "geom_max_normal_error"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class RefOutcome:
+    """What :func:`process_reference` did for one reference and pass."""
+
+    name: str
+    stage: Stage
+    status: Literal["computed", "done", "skipped"]
+    reason: str = ""
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
 class StereoResult:
-    """What :func:`run_stereo` did: processed, skipped (with reasons) and timing."""
+    """What :func:`run_stereo` did: processed, skipped (with reasons) and timing.
+
+    ``processed`` / ``already_done`` are the photometric pass's, ``geometric_processed`` /
+    ``geometric_done`` the geometric pass's; ``timings`` sums seconds per stage over both passes;
+    ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
+    per computed reference. ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
+    lists a subset) and got photometric maps for the geometric pass.
+    """
 
     workspace: Workspace
     processed: list[str] = field(default_factory=list)
@@ -122,6 +224,12 @@ class StereoResult:
     skipped: dict[str, str] = field(default_factory=dict)
     sources: dict[str, list[str]] = field(default_factory=dict)
     seconds_per_image: float = 0.0
+    geometric_processed: list[str] = field(default_factory=list)
+    geometric_done: list[str] = field(default_factory=list)
+    geometric_skipped: dict[str, str] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    pass_seconds: dict[str, float] = field(default_factory=dict)
+    auxiliary: list[str] = field(default_factory=list)
     adapt_seconds: float = 0.0
     adapt_seconds_per_image: float = 0.0
 
@@ -236,62 +344,248 @@ def drop_outlier_hints(sparse: np.ndarray, depth_range: tuple[float, float], con
     return sparse
 
 
-def _prepare_views(ws: Workspace, model: SparseModel, names: list[str], max_image_size: int):
-    """Load the reference and sources, resized to the reference's inference size.
+# --------------------------------------------------------------------------- image cache
 
-    Returns images ``[N, 3, H, W]`` float32, intrinsics ``[N, 3, 3]`` and poses ``[N, 4, 4]``.
-    Each source is resized to the reference's ``(H, W)`` with its own exact scale, so
-    sources of slightly different size are fine. Intrinsics follow COLMAP's MVS
-    convention (:func:`colmap_pvs.io.maps.fusion_intrinsics`), as COLMAP's patch-match does.
+
+class ImageCache:
+    """Decoded, resized ``[3, H, W]`` float32 images shared across references (thread-safe LRU).
+
+    Each image is a source of several references; it is decoded and resized once per size. Entries
+    are futures, so a prefetch in a background thread and a later request share one load.
     """
-    ref_img = load_image(ws.images_dir / names[0])
-    ref_small, _, _ = resize_image(ref_img, max_image_size)
-    height, width = ref_small.shape[:2]
-    images, Ks, poses = [], [], []
-    for i, name in enumerate(names):
-        im = model.image_by_name(name)
-        cam = model.camera_of(im)
-        pix = ref_img if i == 0 else load_image(ws.images_dir / name)
+
+    def __init__(self, ws: Workspace, model: SparseModel, capacity: int = 16) -> None:
+        self.ws, self.model, self.capacity = ws, model, capacity
+        self._items: OrderedDict[tuple, Future] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def _load(self, name: str, max_image_size: int, size: tuple[int, int] | None) -> np.ndarray:
+        im = self.model.image_by_name(name)
+        cam = self.model.camera_of(im)
+        pix = load_image(self.ws.images_dir / name)
         if pix.shape[0] != cam.height or pix.shape[1] != cam.width:
             raise WorkspaceError(
                 f"image {name!r} is {pix.shape[1]}x{pix.shape[0]} but its camera {cam.camera_id} says "
                 f"{cam.width}x{cam.height}"
             )
-        if i == 0:
-            small = ref_small
+        if size is None:
+            small, _, _ = resize_image(pix, max_image_size)
         else:
             import cv2
 
-            small = cv2.resize(pix, (width, height), interpolation=cv2.INTER_AREA)
-        images.append(small.astype(np.float32).transpose(2, 0, 1) / 255.0)
-        # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
-        Ks.append(fusion_intrinsics(cam.K, (cam.width, cam.height), (width, height)))
-        poses.append(to_homogeneous(im.cam_from_world))
-    return np.stack(images), np.stack(Ks), np.stack(poses)
+            small = pix if (pix.shape[1], pix.shape[0]) == size else cv2.resize(
+                pix, size, interpolation=cv2.INTER_AREA
+            )
+        return np.ascontiguousarray(small.transpose(2, 0, 1), dtype=np.float32) * np.float32(1.0 / 255.0)
+
+    def future(self, name: str, max_image_size: int, size: tuple[int, int] | None = None,
+               executor: ThreadPoolExecutor | None = None) -> Future:
+        """The image at its own inference size (``size=None``) or resized to ``size = (W, H)``."""
+        key = (name, max_image_size, size)
+        with self._lock:
+            fut = self._items.get(key)
+            if fut is not None:
+                self._items.move_to_end(key)
+                return fut
+            fut = Future()
+            self._items[key] = fut
+            while len(self._items) > self.capacity:
+                self._items.popitem(last=False)
+
+        def work() -> None:
+            try:
+                fut.set_result(self._load(name, max_image_size, size))
+            except BaseException as exc:  # re-raised by .result() in the caller
+                fut.set_exception(exc)
+                with self._lock:
+                    self._items.pop(key, None)
+
+        if executor is None:
+            work()
+        else:
+            executor.submit(work)
+        return fut
+
+    def get(self, name: str, max_image_size: int, size: tuple[int, int] | None = None) -> np.ndarray:
+        return self.future(name, max_image_size, size).result()
 
 
-def _is_done(ws: Workspace, name: str) -> bool:
-    return ws.depth_map_path(name, "geometric").exists() and ws.normal_map_path(name, "geometric").exists()
+# --------------------------------------------------------------------------- context
 
 
-def _write_outputs(
-    ws: Workspace, name: str, depth: np.ndarray, normals: np.ndarray, confidence: np.ndarray
-) -> None:
-    # Confidence and normals first, the geometric depth map last: it marks the image as done.
-    write_array(ws.confidence_map_path(name), confidence.astype(np.float32))
-    for kind in ("photometric", "geometric"):
-        write_normal_map(ws.normal_map_path(name, kind), normals)
-    write_depth_map(ws.depth_map_path(name, "photometric"), depth)
-    write_depth_map(ws.depth_map_path(name, "geometric"), depth)
+@dataclass
+class StereoContext:
+    """Everything loaded once per run (or once per Ray worker): see :func:`prepare_stereo`."""
+
+    config: StereoConfig
+    workspace: Workspace
+    sparse: SparseModel
+    net: torch.nn.Module
+    checkpoint_path: Path
+    checkpoint_sha256: str
+    device: torch.device
+    selection: ViewSelection
+    references: dict[str, object]
+    id_order: np.ndarray
+    images: ImageCache
+    adapt_seconds: float = 0.0
+    loader: ThreadPoolExecutor | None = None
+    writer: ThreadPoolExecutor | None = None
+    pending_writes: list[Future] = field(default_factory=list)
+
+    def sources_of(self, name: str) -> tuple[list[str] | None, str]:
+        """The sources of reference ``name``, or ``(None, reason)`` when it must be skipped."""
+        entry = self.selection.references.get(name)
+        if entry is None:
+            reason = next((sk.reason for sk in self.selection.skipped if sk.name == name), "not selectable")
+            return None, reason
+        sources = list(reference_sources(self.selection, name, self.references.get(name),
+                                         self.config.num_views - 1))
+        if len(sources) < self.config.min_sources:
+            return None, (f"only {len(sources)} source view(s) share points with it "
+                          f"(need {self.config.min_sources})")
+        return sources, ""
+
+    def map_size(self, name: str) -> tuple[int, int]:
+        """``(W, H)`` of ``name``'s maps at this run's ``max_image_size``."""
+        cam = self.sparse.camera_of(self.sparse.image_by_name(name))
+        longest = max(cam.width, cam.height)
+        m = self.config.max_image_size
+        if m <= 0 or longest <= m:
+            return cam.width, cam.height
+        s = m / longest
+        return (max(1, min(m, int(np.floor(cam.width * s + 0.5)))),
+                max(1, min(m, int(np.floor(cam.height * s + 0.5)))))
+
+    def map_K(self, name: str, size: tuple[int, int]) -> np.ndarray:
+        cam = self.sparse.camera_of(self.sparse.image_by_name(name))
+        return fusion_intrinsics(cam.K, (cam.width, cam.height), size)
+
+    def prefetch(self, name: str) -> None:
+        """Start decoding ``name``'s reference and source images in the loader thread."""
+        if self.loader is None:
+            return
+        sources, _ = self.sources_of(name)
+        if sources is None:
+            return
+        size = self.map_size(name)
+        for n in [name, *sources]:
+            self.images.future(n, self.config.max_image_size, size, executor=self.loader)
+
+    def submit_write(self, fn, *args) -> None:
+        """Run a write job in the writer thread (synchronously when there is none)."""
+        if self.writer is None:
+            fn(*args)
+        else:
+            self.pending_writes.append(self.writer.submit(fn, *args))
+
+    def flush(self) -> None:
+        """Wait for every pending write; re-raises the first failure."""
+        pending, self.pending_writes = self.pending_writes, []
+        for fut in pending:
+            fut.result()
+
+    def close(self) -> None:
+        try:
+            self.flush()
+        finally:
+            for ex in (self.loader, self.writer):
+                if ex is not None:
+                    ex.shutdown(wait=True)
+            self.loader = self.writer = None
 
 
-def _write_previews(ws: Workspace, name: str, depth, normals, confidence, visibility, sources, dr) -> None:
-    out = ws.stereo_dir / "previews"
-    save_depth_preview(out / f"{name}.depth.png", depth, vmin=dr[0], vmax=dr[1])
-    save_normal_preview(out / f"{name}.normal.png", normals)
-    save_scalar_preview(out / f"{name}.confidence.png", confidence)
-    for k, src in enumerate(sources):
-        save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", visibility[k])
+def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> StereoContext:
+    """Load the workspace, the network and the view selection once.
+
+    ``background_io``: decode the next references' images and write finished maps in two background
+    threads (:meth:`StereoContext.prefetch`, :meth:`StereoContext.flush`); call
+    :meth:`StereoContext.close` at the end.
+    """
+    ws, model_sparse = load_workspace(config.workspace_path)
+    device = resolve_device(config.device)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    net, ckpt_path, _meta = load_stereo_model(config, device)
+    adapt_seconds = 0.0
+    if config.adapt_steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
+        net, ckpt_path, adapt_seconds = _adapt(config, ws, ckpt_path, device)
+    selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
+    refs = choose_references(ws, model_sparse)
+    return StereoContext(
+        config=config,
+        workspace=ws,
+        sparse=model_sparse,
+        net=net,
+        checkpoint_path=ckpt_path,
+        checkpoint_sha256=file_sha256(ckpt_path),
+        device=device,
+        selection=selection,
+        references=refs,
+        id_order=np.argsort(model_sparse.points.ids, kind="stable"),
+        images=ImageCache(ws, model_sparse, capacity=max(16, 3 * config.num_views)),
+        adapt_seconds=adapt_seconds,
+        loader=ThreadPoolExecutor(1, thread_name_prefix="stereo-load") if background_io else None,
+        writer=ThreadPoolExecutor(1, thread_name_prefix="stereo-write") if background_io else None,
+    )
+
+
+# --------------------------------------------------------------------------- provenance
+
+
+def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
+    """``stereo/provenance/NAME.STAGE.json``: what produced that pass's maps of ``name``."""
+    ws.depth_map_path(name, stage)  # validates name and stage
+    return ws.stereo_dir / "provenance" / f"{name}.{stage}.json"
+
+
+def _fingerprint(settings: dict) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
+
+
+def _settings(ctx: StereoContext, stage: Stage, keys: tuple[str, ...]) -> dict:
+    cfg = config_to_dict(ctx.config)
+    out = {k: cfg[k] for k in keys}
+    out.update(stage=stage, format_version=FORMAT_VERSIONS[stage])
+    return out
+
+
+def photometric_settings(ctx: StereoContext, name: str, sources: list[str]) -> dict:
+    """The resolved settings that determine ``name``'s photometric maps."""
+    s = _settings(ctx, "photometric", PHOTOMETRIC_SETTINGS)
+    entry = ctx.selection.references[name]
+    s.update(checkpoint_sha256=ctx.checkpoint_sha256, sources=list(sources),
+             depth_range=[float(entry.depth_range[0]), float(entry.depth_range[1])],
+             model_config=config_to_dict(ctx.net.config))
+    return s
+
+
+def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
+    path = provenance_path(ws, name, stage)
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: tuple[int, int]) -> bool:
+    """The pass's depth map is readable, has the expected size and its provenance matches."""
+    prov = read_provenance(ws, name, stage)
+    if prov is None or prov.get("fingerprint") != fingerprint:
+        return False
+    try:
+        depth = read_depth_map(ws.depth_map_path(name, stage))
+    except (OSError, MapFormatError):
+        return False
+    return depth.shape == (size[1], size[0])
+
+
+def _write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, extra: dict) -> None:
+    payload = {"fingerprint": _fingerprint(settings), "settings": settings, **extra}
+    atomic_write_bytes(provenance_path(ws, name, stage), (json.dumps(payload, indent=1) + "\n").encode())
+
+
+# --------------------------------------------------------------------------- photometric pass
 
 
 def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, device):
@@ -303,7 +597,8 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
         depth_range: ``(d_min, d_max)``; sparse_depth: ``[H, W]`` (0 = no point).
 
     Returns:
-        depth ``[H, W]``, confidence ``[H, W]`` and visibility ``[N-1, H, W]`` (upsampled), numpy.
+        depth ``[H, W]``, confidence ``[H, W]`` and coarse visibility ``[N-1, ceil(H/4), ceil(W/4)]``,
+        numpy.
     """
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)[None]  # noqa: E731
     with torch.inference_mode():
@@ -315,89 +610,338 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
             t(depth_range[1]),
             sparse_depth=t(sparse_depth)[:, None],
         )
-        h, w = images.shape[-2:]
-        vis = torch.nn.functional.interpolate(out.visibility.float(), size=(h, w), mode="bilinear",
-                                              align_corners=False)
-    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis[0].cpu().numpy()
+    vis = out.visibility[0].float().cpu().numpy()
+    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis
+
+
+def upsample_visibility(vis: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``[S, h, w]`` coarse visibility to ``[S, H, W]`` (bilinear, half-pixel centres)."""
+    import cv2
+
+    if vis.shape[0] == 0:
+        return np.zeros((0, height, width), np.float32)
+    return np.stack([cv2.resize(v, (width, height), interpolation=cv2.INTER_LINEAR) for v in vis])
+
+
+def _write_photometric(ws: Workspace, name: str, depth, normals, conf, vis, settings, extra, previews,
+                       sources, depth_range, timings) -> None:
+    t0 = time.perf_counter()
+    write_array(ws.confidence_map_path(name, "photometric"), conf.astype(np.float32))
+    write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
+                np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
+    write_normal_map(ws.normal_map_path(name, "photometric"), normals)
+    _write_provenance(ws, name, "photometric", settings, extra)
+    write_depth_map(ws.depth_map_path(name, "photometric"), depth)  # last: marks the pass done
+    timings["writes"] = time.perf_counter() - t0
+    if previews:
+        t0 = time.perf_counter()
+        out = ws.stereo_dir / "previews"
+        save_depth_preview(out / f"{name}.photometric.depth.png", depth, vmin=depth_range[0],
+                           vmax=depth_range[1])
+        save_normal_preview(out / f"{name}.photometric.normal.png", normals)
+        save_scalar_preview(out / f"{name}.photometric.confidence.png", conf)
+        for k, src in enumerate(sources):
+            save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
+        timings["previews"] = time.perf_counter() - t0
+
+
+def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    sources, reason = ctx.sources_of(name)
+    if sources is None:
+        return RefOutcome(name, "photometric", "skipped", reason)
+    size = ctx.map_size(name)
+    settings = photometric_settings(ctx, name, sources)
+    if not cfg.overwrite and _is_current(ws, name, "photometric", _fingerprint(settings), size):
+        return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
+    t0 = time.perf_counter()
+    names = [name, *sources]
+    futures = [ctx.images.future(n, cfg.max_image_size, size) for n in names]
+    images = np.stack([f.result() for f in futures])
+    Ks = np.stack([ctx.map_K(n, size) for n in names])
+    # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
+    poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    w, h = size
+    ref = ctx.sparse.image_by_name(name)
+    sparse = _sparse_depth_map(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
+    entry = ctx.selection.references[name]
+    drop_outlier_hints(sparse, entry.depth_range, ctx.selection.config)
+    timings["prior"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    try:
+        if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
+            check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
+        depth, conf, vis = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse, ctx.device)
+    except (RuntimeError, MemoryError) as exc:
+        if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
+            raise
+        reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
+        logger.error("skipping %s: %s (%s)", name, reason, exc)
+        return RefOutcome(name, "photometric", "skipped", reason)
+    timings["network"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
+    conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
+    timings["confidence"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    normals = depth_to_normals(depth, Ks[0])
+    depth[~np.any(normals != 0, axis=-1)] = 0.0
+    timings["normals"] = time.perf_counter() - t0
+    extra = {"image_size": list(size), "sources": sources}
+    ctx.submit_write(_write_photometric, ws, name, depth, normals, conf, vis, settings, extra, cfg.previews,
+                     sources, entry.depth_range, timings)
+    return RefOutcome(name, "photometric", "computed", seconds=time.perf_counter() - start, timings=timings)
+
+
+# --------------------------------------------------------------------------- geometric pass
+
+
+def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None) -> np.ndarray:
+    """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
+
+    ``c = sum_s v_s * agree_s / S``: the fraction of the ``S`` sources that confirm the pixel, each
+    weighted by the network's learned visibility ``v_s`` of that source at the pixel (``agree``
+    ``[S, H, W]``, ``visibility`` ``[S, H, W]`` or ``None`` for all ones). Chosen by measurement on
+    hololens-dev (``benchmarks/RESULTS.md``): it ranks errors better than the network's probability
+    mass (which does not rank the consistent pixels at all), the agreement count alone, or the
+    reprojection and depth errors.
+    """
+    S = max(agree.shape[0], 1)
+    weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
+    return np.clip(weighted.sum(0) / S, 0.0, 1.0).astype(np.float32)
+
+
+def _load_photometric(ctx: StereoContext, name: str):
+    ws = ctx.workspace
+    depth = read_depth_map(ws.depth_map_path(name, "photometric"))
+    normals = read_normal_map(ws.normal_map_path(name, "photometric"))
+    if normals.shape[:2] != depth.shape:
+        raise MapFormatError(
+            f"normal map of {name!r} is {normals.shape[:2]} but its depth map is {depth.shape}"
+        )
+    h, w = depth.shape
+    T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
+    return SourceMaps(depth, normals, ctx.map_K(name, (w, h)), T)
+
+
+def _write_geometric(ws: Workspace, name: str, depth, normals, conf, settings, extra, previews, depth_range,
+                     timings) -> None:
+    t0 = time.perf_counter()
+    write_array(ws.confidence_map_path(name, "geometric"), conf)
+    write_normal_map(ws.normal_map_path(name, "geometric"), normals)
+    _write_provenance(ws, name, "geometric", settings, extra)
+    write_depth_map(ws.depth_map_path(name, "geometric"), depth)  # last: marks the pass done
+    timings["writes"] = time.perf_counter() - t0
+    if previews:
+        t0 = time.perf_counter()
+        out = ws.stereo_dir / "previews"
+        save_depth_preview(out / f"{name}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
+        save_normal_preview(out / f"{name}.normal.png", normals)
+        save_scalar_preview(out / f"{name}.confidence.png", conf)
+        timings["previews"] = time.perf_counter() - t0
+
+
+def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    prov = read_provenance(ws, name, "photometric")
+    if prov is None or not ws.depth_map_path(name, "photometric").is_file():
+        return RefOutcome(name, "geometric", "skipped", "its photometric maps do not exist")
+    def has_maps(s: str) -> bool:
+        path = ws.depth_map_path(s, "photometric")
+        return path.is_file() and read_provenance(ws, s, "photometric") is not None
+
+    sources = [s for s in prov.get("sources", []) if has_maps(s)]
+    missing = [s for s in prov.get("sources", []) if s not in sources]
+    entry = ctx.selection.references.get(name)
+    if cfg.geom_num_sources > len(sources) and entry is not None:  # the next best views with maps
+        for s in entry.ranked_names:
+            if len(sources) >= cfg.geom_num_sources:
+                break
+            if s not in sources and s != name and has_maps(s):
+                sources.append(s)
+    settings = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
+    settings.update(
+        reference=prov["fingerprint"],
+        sources={s: read_provenance(ws, s, "photometric")["fingerprint"] for s in sources},
+    )
+    size = tuple(prov.get("image_size", ctx.map_size(name)))
+    if not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size):
+        return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
+    if len(sources) < min(cfg.geom_min_consistent, len(prov.get("sources", []))) or not sources:
+        return RefOutcome(name, "geometric", "skipped",
+                          f"{len(sources)} of its sources have photometric maps (missing: {missing})")
+    t0 = time.perf_counter()
+    ref = _load_photometric(ctx, name)
+    srcs = [_load_photometric(ctx, s) for s in sources]
+    h, w = ref.depth.shape
+    all_sources = list(prov.get("sources", []))
+    vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
+    vis = None
+    if vis_path.is_file():
+        coarse = read_array(vis_path)
+        coarse = coarse[..., None] if coarse.ndim == 2 else coarse
+        if coarse.shape[2] == len(all_sources):  # views the network did not see count as visible
+            up = upsample_visibility(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
+            ones = np.ones((h, w), np.float32)
+            vis = np.stack([up[all_sources.index(s)] if s in all_sources else ones for s in sources])
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = check_consistency(
+        ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis,
+        max_reproj_error=cfg.geom_max_reproj_error,
+        max_depth_error=cfg.geom_max_depth_error,
+        max_normal_error=cfg.geom_max_normal_error,
+        min_visibility=cfg.geom_min_visibility,
+    )
+    count = res.count
+    keep = (ref.depth > 0) & (count >= cfg.geom_min_consistent)
+    depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
+    timings["consistency"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    conf = geometric_confidence(res.agree, vis)
+    keep &= conf >= cfg.geom_min_confidence
+    depth = np.where(keep, depth, 0.0).astype(np.float32)
+    conf = np.where(keep, conf, 0.0).astype(np.float32)
+    timings["confidence"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    normals = fit_normals(depth, ref.K)
+    depth[~np.any(normals != 0, axis=-1)] = 0.0
+    conf[depth == 0] = 0.0
+    timings["normals"] = time.perf_counter() - t0
+    dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
+                                                      float(depth.max(initial=2.0)))
+    extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
+             "kept_fraction": float(keep.mean())}
+    ctx.submit_write(_write_geometric, ws, name, depth, normals, conf, settings, extra, cfg.previews, dr,
+                     timings)
+    return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
+
+
+def process_reference(ctx: StereoContext, name: str, stage: Stage) -> RefOutcome:
+    """Compute (if not current) and atomically write one reference's maps for one pass.
+
+    The pass's depth map is written last (after its provenance), so its existence with matching
+    provenance marks the reference done. The geometric pass reads the photometric maps of ``name``
+    and of its sources. With background writes (``prepare_stereo(background_io=True)``) the files
+    appear after :meth:`StereoContext.flush`; ``timings`` then fills in ``writes`` at that point.
+    """
+    if stage == "photometric":
+        return _photometric(ctx, name)
+    if stage == "geometric":
+        return _geometric(ctx, name)
+    raise ConfigError(f"stage must be 'photometric' or 'geometric', got {stage!r}")
+
+
+def auxiliary_references(ctx: StereoContext) -> list[str]:
+    """Sources of the references that are not references themselves (``patch-match.cfg`` lists a
+    subset): the geometric pass needs their photometric maps, so they get a photometric pass too
+    (with automatic sources), but no geometric maps and no ``fusion.cfg`` entry."""
+    refs = set(ctx.references)
+    extra: dict[str, None] = {}
+    for name in ctx.references:
+        sources, _ = ctx.sources_of(name)
+        for s in sources or ():
+            if s not in refs:
+                extra[s] = None
+    return sorted(extra)
+
+
+def _final_kind(config: StereoConfig) -> Stage:
+    return "geometric" if config.geom_consistency else "photometric"
 
 
 def run_stereo(config: StereoConfig) -> StereoResult:
-    """Compute depth and normal maps for every reference image of the workspace.
+    """Compute depth and normal maps for every reference image of the workspace (both passes).
 
-    Resumable: images whose maps exist are skipped unless ``config.overwrite``.
+    Resumable per pass: maps that exist with matching provenance are kept unless ``config.overwrite``.
     Images without usable sources or sparse points are skipped with a warning.
     """
-    ws, model_sparse = load_workspace(config.workspace_path)
+    wall = time.perf_counter()
+    ctx = prepare_stereo(config, background_io=True)
+    ws = ctx.workspace
     remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
-    device = resolve_device(config.device)
-    if config.threads > 0:
-        torch.set_num_threads(config.threads)
-    net, ckpt_path, _meta = load_stereo_model(config, device)
-    adapt_seconds = 0.0
-    if config.adapt_steps > 0:
-        net, ckpt_path, adapt_seconds = _adapt(config, ws, ckpt_path, device)
-    selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
-    refs = choose_references(ws, model_sparse)
-    id_order = np.argsort(model_sparse.points.ids, kind="stable")
-    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ckpt_path),
-                model_config=net.config)
-    result = StereoResult(workspace=ws, adapt_seconds=adapt_seconds)
-    result.adapt_seconds_per_image = adapt_seconds / max(1, len(refs))
-    times: list[float] = []
-    bar = tqdm(refs.items(), desc="stereo", unit="image")
-    for name, spec in bar:
-        if not config.overwrite and _is_done(ws, name):
-            result.already_done.append(name)
-            continue
-        entry = selection.references.get(name)
-        if entry is None:
-            reason = next((sk.reason for sk in selection.skipped if sk.name == name), "not selectable")
-            logger.warning("skipping %s: %s", name, reason)
-            result.skipped[name] = reason
-            continue
-        sources = list(reference_sources(selection, name, spec, config.num_views - 1))
-        if len(sources) < config.min_sources:
-            reason = f"only {len(sources)} source view(s) share points with it (need {config.min_sources})"
-            logger.warning("skipping %s: %s", name, reason)
-            result.skipped[name] = reason
-            continue
-        result.sources[name] = sources
-        start = time.perf_counter()
-        images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
-        h, w = images.shape[-2:]
-        ref = model_sparse.image_by_name(name)
-        sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
-        drop_outlier_hints(sparse, entry.depth_range, selection.config)
-        try:
-            if device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
-                check_memory_budget(h, w, len(sources) + 1, net.config)
-            depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
-        except (RuntimeError, MemoryError) as exc:
-            if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
-                raise
-            reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
-            logger.error("skipping %s: %s (%s)", name, reason, exc)
-            result.skipped[name] = reason
-            continue
-        depth = np.where((conf >= config.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
-        normals = depth_to_normals(depth, Ks[0])
-        depth[~np.any(normals != 0, axis=-1)] = 0.0
-        _write_outputs(ws, name, depth, normals, conf)
-        if config.previews:
-            _write_previews(ws, name, depth, normals, conf, vis, sources, entry.depth_range)
-        times.append(time.perf_counter() - start)
-        result.processed.append(name)
-        bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
-    done = [n for n in refs if _is_done(ws, n)]
+    t_prepare = time.perf_counter() - wall
+    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
+                checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
+    result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
+    result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
+    result.timings["prepare"] = t_prepare
+    outcomes: list[RefOutcome] = []
+    names = list(ctx.references)
+    result.auxiliary = auxiliary_references(ctx) if config.geom_consistency else []
+    work = names + result.auxiliary
+    try:
+        t_pass = time.perf_counter()
+        bar = tqdm(work, desc="stereo (photometric)", unit="image")
+        for i, name in enumerate(bar):
+            if i + 1 < len(work):
+                ctx.prefetch(work[i + 1])
+            out = process_reference(ctx, name, "photometric")
+            outcomes.append(out)
+            if i >= len(names):  # an auxiliary source: reported in result.auxiliary only
+                if out.status == "skipped":
+                    logger.warning("no photometric maps for source %s: %s", name, out.reason)
+                continue
+            if out.status == "done":
+                result.already_done.append(name)
+            elif out.status == "skipped":
+                logger.warning("skipping %s: %s", name, out.reason)
+                result.skipped[name] = out.reason
+            else:
+                result.processed.append(name)
+                bar.set_postfix(s=f"{out.seconds:.2f}")
+            sources, _ = ctx.sources_of(name)
+            if sources is not None:
+                result.sources[name] = sources
+        ctx.flush()
+        result.pass_seconds["photometric"] = time.perf_counter() - t_pass
+        if config.geom_consistency:
+            t_pass = time.perf_counter()
+            for name in tqdm(names, desc="stereo (geometric)", unit="image"):
+                if name in result.skipped:
+                    continue
+                out = process_reference(ctx, name, "geometric")
+                outcomes.append(out)
+                if out.status == "done":
+                    result.geometric_done.append(name)
+                elif out.status == "skipped":
+                    logger.warning("geometric pass: skipping %s: %s", name, out.reason)
+                    result.geometric_skipped[name] = out.reason
+                else:
+                    result.geometric_processed.append(name)
+            ctx.flush()
+            result.pass_seconds["geometric"] = time.perf_counter() - t_pass
+    finally:
+        ctx.close()
+    for out in outcomes:
+        for stage, sec in out.timings.items():
+            key = stage if out.stage == "photometric" else f"geometric.{stage}"
+            result.timings[key] = result.timings.get(key, 0.0) + sec
+    kind = _final_kind(config)
+    done = [n for n in names
+            if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
     if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
         reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
         raise WorkspaceError(
-            f"no depth map in {str(ws.stereo_dir)!r}: all {len(refs)} reference(s) were skipped ({reasons})"
+            f"no {kind} depth map in {str(ws.stereo_dir)!r}: all {len(names)} reference(s) were skipped "
+            f"({reasons})"
         )
     write_fusion_cfg(ws.fusion_cfg, done)
-    result.seconds_per_image = float(np.mean(times)) if times else 0.0
+    computed = len(set(result.processed) | set(result.geometric_processed))
+    total = time.perf_counter() - wall
+    result.pass_seconds["total"] = total
+    result.seconds_per_image = total / computed if computed else 0.0
     logger.info(
-        "stereo: %d computed, %d already done, %d skipped, %.2f s/image",
-        len(result.processed), len(result.already_done), len(result.skipped), result.seconds_per_image,
+        "stereo: photometric %d computed, %d already done, %d skipped; geometric %d computed, %d done, "
+        "%d skipped; %.2f s/image",
+        len(result.processed), len(result.already_done), len(result.skipped),
+        len(result.geometric_processed), len(result.geometric_done), len(result.geometric_skipped),
+        result.seconds_per_image,
     )
     return result

@@ -379,3 +379,18 @@ def test_evaluate_cloud_reads_ply_and_writes_json(tmp_path, capsys):
         evaluate_cloud(EvaluateCloudConfig(tmp_path / "nothere.ply", tmp_path / "gt.ply"))
     with pytest.raises(ConfigError, match="thresholds"):
         EvaluateCloudConfig(tmp_path / "rec.ply", tmp_path / "gt.ply", thresholds=(0.0,))
+
+
+def test_sparsification_curve_matches_the_oracle_for_perfect_confidence():
+    from colmap_pvs.evaluate import sparsification_curve
+
+    rng = np.random.default_rng(0)
+    err = rng.random(1000)
+    perfect = sparsification_curve(-err, err)
+    np.testing.assert_allclose(perfect["error"], perfect["oracle"])
+    assert perfect["oracle"][-1] == pytest.approx(err.mean())
+    assert perfect["oracle"][4] == pytest.approx(np.sort(err)[:500].mean())
+    random_rank = sparsification_curve(rng.random(1000), err)
+    assert random_rank["error"][4] > 1.5 * random_rank["oracle"][4]  # uniform errors: ~2x
+    inverted = sparsification_curve(err, err)
+    assert inverted["error"][0] > err.mean() > perfect["error"][0]

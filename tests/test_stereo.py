@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from colmap_pvs.cli.main import main
 
 import colmap_pvs.stereo as stereo_module
+from colmap_pvs.cli.main import main
 from colmap_pvs.errors import CheckpointError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
@@ -59,12 +59,12 @@ def test_stereo_cli_writes_colmap_maps_and_resumes(synthetic_ws, tmp_path, tiny_
     for name in names:
         im = model.image_by_name(name)
         cam = model.camera_of(im)
-        depth = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin")
-        assert max(depth.shape) == 64 and depth.shape == (48, 64)  # 96x72 -> longest side 64
-        np.testing.assert_array_equal(
-            depth, read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin")
-        )
-        normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{name}.geometric.bin")
+        geometric = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin")
+        depth = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin")
+        assert depth.shape == geometric.shape == (48, 64)  # 96x72 -> longest side 64
+        # The geometric pass only removes (and averages) pixels; random weights agree nowhere much.
+        assert np.all(depth[geometric > 0] > 0) and (geometric > 0).sum() < (depth > 0).sum()
+        normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin")
         valid = depth > 0
         assert valid.mean() > 0.5
         np.testing.assert_allclose(np.linalg.norm(normals[valid], axis=-1), 1.0, atol=1e-4)
@@ -72,16 +72,21 @@ def test_stereo_cli_writes_colmap_maps_and_resumes(synthetic_ws, tmp_path, tiny_
         K = fusion_intrinsics(cam.K, (cam.width, cam.height), (64, 48))
         pts = backproject_depth(depth, K)
         assert np.all(np.sum(normals * pts, -1)[valid] < 0)  # camera-facing
-        conf = read_array(ws / "stereo" / "confidence_maps" / f"{name}.bin")
-        assert conf.shape == depth.shape and np.all((conf >= 0) & (conf <= 1))
+        for kind in ("photometric", "geometric"):
+            conf = read_array(ws / "stereo" / "confidence_maps" / f"{name}.{kind}.bin")
+            assert conf.shape == depth.shape and np.all((conf >= 0) & (conf <= 1))
+            assert (ws / "stereo" / "provenance" / f"{name}.{kind}.json").is_file()
         assert (ws / "stereo" / "previews" / f"{name}.depth.png").is_file()
+        assert (ws / "stereo" / "previews" / f"{name}.photometric.depth.png").is_file()
         assert len(list((ws / "stereo" / "previews").glob(f"{name}.visibility.*.png"))) == 2
     assert (ws / "stereo" / stereo_module.CONFIG_FILENAME).is_file()
     # A rerun resumes: nothing is recomputed unless --overwrite.
     first = (ws / "stereo" / "depth_maps" / f"{names[0]}.geometric.bin").stat().st_mtime_ns
-    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
-                                  max_image_size=64))
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                       min_confidence=0.0)
+    res = run_stereo(cfg)
     assert res.processed == [] and sorted(res.already_done) == names
+    assert res.geometric_processed == [] and sorted(res.geometric_done) == names
     res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
                                   max_image_size=64, overwrite=True))
     assert sorted(res.processed) == names
@@ -161,11 +166,15 @@ def test_shipped_checkpoint_end_to_end_through_colmap_fusion(tmp_path):
     make_synthetic_workspace(ws, SyntheticWorkspaceConfig(seed=11, width=160, height=120, num_views=5))
     res = run_stereo(StereoConfig(workspace_path=ws, num_views=4, max_image_size=160, threads=2))
     assert len(res.processed) == 5
-    metrics = evaluate_depth(
-        EvaluateDepthConfig(workspace_path=ws, gt=ws / "gt" / "depth_maps", gt_pattern="{name}.npy")
-    )
+    metrics = evaluate_depth(EvaluateDepthConfig(workspace_path=ws, gt=ws / "gt" / "depth_maps",
+                                                 gt_pattern="{name}.npy", kind="photometric"))
     assert metrics.pooled.coverage_pct > 80
     assert metrics.pooled.rel_under_pct[0.05] > 70  # measured ~85 % at step 1500 of training
+    geo = evaluate_depth(
+        EvaluateDepthConfig(workspace_path=ws, gt=ws / "gt" / "depth_maps", gt_pattern="{name}.npy")
+    )
+    assert geo.pooled.coverage_pct > 30
+    assert geo.pooled.absrel < 0.7 * metrics.pooled.absrel
     fused = fuse(FuseConfig(workspace_path=ws, output_path=tmp_path / "fused.ply", method="colmap"))
     assert fused.num_points > 2000
     mesh = o3d.io.read_triangle_mesh(str(ws / "gt" / "mesh.ply"))
@@ -208,3 +217,76 @@ def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_chec
         assert model.config.sparse_guidance == (guidance == "on")
         for k, v in model.state_dict().items():  # the same weights
             assert np.array_equal(v.numpy(), base.state_dict()[k].numpy()), k
+
+
+def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthetic_ws, tmp_path,
+                                                                        tiny_checkpoint):
+    ws = _copy(synthetic_ws, tmp_path)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+                       min_confidence=0.0)
+    first = run_stereo(cfg)
+    names = sorted(first.processed)
+    assert sorted(first.geometric_processed) == names and len(names) == 4
+    assert set(first.timings) >= {"load", "prior", "network", "normals", "writes", "geometric.consistency"}
+    assert set(first.pass_seconds) == {"photometric", "geometric", "total"}
+    # A geometric setting: only the geometric pass is recomputed.
+    res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
+    assert res.processed == [] and sorted(res.already_done) == names
+    assert sorted(res.geometric_processed) == names
+    # A photometric setting: both passes.
+    res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05, min_confidence=0.01))
+    assert sorted(res.processed) == names and sorted(res.geometric_processed) == names
+    # A truncated map or a missing provenance file recomputes that reference's pass only.
+    cfg = dataclasses.replace(cfg, geom_max_depth_error=0.05, min_confidence=0.01)
+    path = ws / "stereo" / "depth_maps" / f"{names[1]}.geometric.bin"
+    path.write_bytes(path.read_bytes()[:100])
+    (ws / "stereo" / "provenance" / f"{names[2]}.photometric.json").unlink()
+    res = run_stereo(cfg)
+    assert res.processed == [names[2]]
+    # names[2]'s new photometric maps change nothing in its fingerprint: only names[1] is redone.
+    assert res.geometric_processed == [names[1]]
+    read_depth_map(path)
+    # A different checkpoint recomputes everything.
+    from conftest import make_tiny_checkpoint
+
+    other = make_tiny_checkpoint(tmp_path / "other.pt", visibility_channels=6)
+    res = run_stereo(dataclasses.replace(cfg, checkpoint=other))
+    assert sorted(res.processed) == names
+
+
+def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, tiny_checkpoint):
+    """Exact photometric maps with one corrupted block: the geometric pass keeps the rest and drops it."""
+    from colmap_pvs.io.maps import write_depth_map, write_normal_map
+
+    ws = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], ws)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
+                       min_confidence=0.0, geom_consistency=False)
+    run_stereo(cfg)
+    from scenes import render_view
+
+    for name in analytic_scene["names"]:  # replace the network's maps by the exact ones
+        K = analytic_scene["map_K"][name]
+        im = analytic_scene["model"].image_by_name(name)
+        view = render_view(analytic_scene["scene"], K, im.cam_from_world, 160, 120)
+        depth = view["depth"].astype(np.float32)
+        if name == analytic_scene["names"][0]:
+            depth[40:70, 60:100] *= 1.1
+        write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
+        write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
+    ctx = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True))
+    ref = analytic_scene["names"][0]
+    out = stereo_module.process_reference(ctx, ref, "geometric")
+    assert out.status == "computed" and out.timings["consistency"] >= 0
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    photo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.photometric.bin")
+    assert (geo[40:70, 60:100] > 0).mean() < 0.02
+    outside = np.ones_like(geo, bool)
+    outside[40:70, 60:100] = False
+    assert (geo[outside] > 0).mean() > 0.4
+    ok = geo > 0
+    np.testing.assert_allclose(geo[ok], photo[ok], rtol=0.03)  # averaged within geom_max_depth_error
+    conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    ctx.close()

@@ -106,10 +106,12 @@ class Workspace:
             raise ConfigError(f"map kind {kind!r} is not one of {list(MAP_KINDS)}")
         return folder / f"{_check_image_name(name)}.{kind}.bin"
 
-    def confidence_map_path(self, name: str) -> Path:
-        """``stereo/confidence_maps/NAME.bin``: colmap-pvs's per-pixel confidence in ``[0, 1]`` (COLMAP
-        ignores this folder)."""
-        return self.stereo_dir / "confidence_maps" / f"{_check_image_name(name)}.bin"
+    def confidence_map_path(self, name: str, kind: str | None = None) -> Path:
+        """``stereo/confidence_maps/NAME.KIND.bin``: colmap-pvs's per-pixel confidence in ``[0, 1]`` of
+        the ``kind`` maps (COLMAP ignores this folder); ``kind=None``: the legacy ``NAME.bin``."""
+        if kind is None:
+            return self.stereo_dir / "confidence_maps" / f"{_check_image_name(name)}.bin"
+        return self._map_path(self.stereo_dir / "confidence_maps", name, kind)
 
     def depth_map_path(self, name: str, kind: str = "geometric") -> Path:
         """``stereo/depth_maps/NAME.KIND.bin`` with ``kind`` in ``MAP_KINDS``."""

@@ -1,0 +1,66 @@
+"""The geometric pass's forward-backward consistency check (``colmap_pvs.consistency``) on exact maps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from colmap_pvs.consistency import SourceMaps, check_consistency
+
+
+@pytest.fixture(scope="module")
+def exact(analytic_scene):
+    gt = analytic_scene
+    model = gt["model"]
+    views = []
+    for name in gt["names"]:
+        im = model.image_by_name(name)
+        K = model.camera_of(im).K
+        views.append(SourceMaps(gt["depth"][name].astype(np.float32), gt["normals"][name].astype(np.float32),
+                                K, im.cam_from_world))
+    return views
+
+
+def _check(ref, srcs, **kw):
+    return check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, **kw)
+
+
+def test_exact_maps_agree_and_wrong_depths_do_not(exact):
+    ref, srcs = exact[0], exact[1:]
+    res = _check(ref, srcs)
+    valid = ref.depth > 0
+    # Pixels seen by a source agree with it (nearest-pixel back-projection: < 1 px, < 1 %); the rest
+    # are occluded by the box or on depth edges.
+    assert res.agree[res.checked].mean() > 0.85
+    seen_twice = res.checked.sum(0) >= 2
+    assert seen_twice.mean() > 0.3 and (res.count[seen_twice] >= 2).mean() > 0.85
+    np.testing.assert_allclose(res.mean_depth(ref.depth)[valid], ref.depth[valid], rtol=0.01)
+    # 5 % too deep in one block: that block agrees with nobody, the rest is unaffected.
+    bad = ref.depth.copy()
+    bad[30:60, 40:90] *= 1.05
+    res_bad = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs)
+    block = np.zeros_like(valid)
+    block[30:60, 40:90] = True
+    assert (res_bad.count[block & valid] > 0).mean() < 0.02  # (a few land on another surface)
+    np.testing.assert_array_equal(res_bad.count[~block], res.count[~block])
+
+
+def test_learned_visibility_chooses_the_views_checked(exact):
+    ref, srcs = exact[0], exact[1:]
+    H, W = ref.depth.shape
+    vis = np.ones((len(srcs), H, W), np.float32)
+    vis[0] = 0.0  # the network says source 0 sees nothing
+    res = _check(ref, srcs, visibility=vis, min_visibility=0.5)
+    assert not res.checked[0].any() and not res.agree[0].any()
+    full = _check(ref, srcs)
+    np.testing.assert_array_equal(res.agree[1:], full.agree[1:])
+    with pytest.raises(Exception, match="visibility"):
+        _check(ref, srcs, visibility=vis[:1], min_visibility=0.5)
+
+
+def test_normal_angle_test_rejects_flipped_source_normals(exact):
+    ref, srcs = exact[0], exact[1:]
+    tilted = [SourceMaps(s.depth, -s.normals, s.K, s.cam_from_world) for s in srcs]
+    assert _check(ref, tilted, max_normal_error=180.0).count.sum() == _check(ref, srcs).count.sum()
+    assert _check(ref, tilted, max_normal_error=30.0).count.sum() == 0
+    assert _check(ref, srcs, max_normal_error=30.0).count.sum() > 0.9 * _check(ref, srcs).count.sum()
