@@ -23,9 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from colmap_pvs.cli.colmap_flags import add_colmap_flags, translate_colmap_flags
-
 from colmap_pvs import __version__
+from colmap_pvs.cli.colmap_flags import add_colmap_flags, translate_colmap_flags
 from colmap_pvs.config import add_config_arguments, config_from_args, config_from_dict
 from colmap_pvs.errors import ColmapPVSError, ConfigError
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
 
+from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.train import TrainConfig
 

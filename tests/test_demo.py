@@ -5,9 +5,9 @@ from __future__ import annotations
 import time
 
 import pytest
-from colmap_pvs.cli.main import main
 
 import colmap_pvs.stereo as stereo_module
+from colmap_pvs.cli.main import main
 from colmap_pvs.demo import DemoConfig, run_demo
 from colmap_pvs.errors import CheckpointError, WorkspaceError
 from colmap_pvs.io.ply import read_mesh, read_point_cloud

@@ -347,6 +347,7 @@ def test_empty_reconstruction_scores_zero():
 
 def test_evaluate_cloud_reads_ply_and_writes_json(tmp_path, capsys):
     import open3d as o3d
+
     from colmap_pvs.cli.main import main
 
     gt = plane(21)

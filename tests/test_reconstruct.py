@@ -4,9 +4,9 @@ slow one runs SfM on ``../shared/data/fern-images`` (stopping after mapping)."""
 from __future__ import annotations
 
 import pytest
-from colmap_pvs.cli.main import main
 from conftest import make_tiny_checkpoint
 
+from colmap_pvs.cli.main import main
 from colmap_pvs.errors import CheckpointError, WorkspaceError
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.reconstruct import ReconstructConfig, reconstruct

@@ -6,8 +6,8 @@ from __future__ import annotations
 import errno
 
 import pytest
-from colmap_pvs.cli.main import COMMANDS, build_parser, main, translate_colmap_flags
 
+from colmap_pvs.cli.main import COMMANDS, build_parser, main, translate_colmap_flags
 from colmap_pvs.errors import ConfigError
 
 

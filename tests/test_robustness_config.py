@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from colmap_pvs.cli.main import main
 
+from colmap_pvs.cli.main import main
 from colmap_pvs.config import config_from_dict
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.fusion import FuseConfig

@@ -10,9 +10,9 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from colmap_pvs.cli.main import main
 from conftest import make_tiny_checkpoint
 
+from colmap_pvs.cli.main import main
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.reconstruct import ReconstructConfig, reconstruct

@@ -9,8 +9,8 @@ import sys
 
 import pytest
 import test_stereo
-from colmap_pvs.cli.main import main
 
+from colmap_pvs.cli.main import main
 from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
 from colmap_pvs.io.cleanup import remove_orphan_temps
