@@ -22,6 +22,7 @@ from pathlib import Path
 import real_depth as rd
 
 from colmap_pvs.config import config_from_dict
+from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
@@ -85,14 +86,23 @@ def main() -> int:
         start = time.perf_counter()
         result = run_stereo(config_from_dict(StereoConfig, fields))
         wall = time.perf_counter() - start
-        metrics = rd.evaluate_against_gt(ws, a.data, refs)
-        for kind, m in metrics.items() if isinstance(metrics, dict) else [("maps", metrics)]:
+        for kind in ("photometric", "geometric"):
+            if not any((ws / "stereo" / "depth_maps").glob(f"*.{kind}.bin")):
+                continue
+            m = evaluate_depth(
+                EvaluateDepthConfig(workspace_path=ws, gt=a.data / "depth", gt_scale=0.001, kind=kind,
+                                    images=tuple(refs), output_path=ws / f"metrics.{kind}.json")
+            )
             s = m.pooled
             under = " / ".join(f"{s.rel_under_pct[t]:.1f}" for t in sorted(s.rel_under_pct))
+            sp = ""
+            curve = m.sparsification
+            if curve and 0.5 in curve["fractions"]:
+                sp = f", AbsRel of the 50 % most confident {curve['error'][curve['fractions'].index(0.5)]:.4f}"
             print(
                 f"{a.tag} {label} {kind}: {len(result.processed)}/{len(refs)} refs, coverage "
                 f"{s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under "
-                f"{sorted(s.rel_under_pct)}: {under}; {wall:.0f} s wall "
+                f"{sorted(s.rel_under_pct)}: {under}{sp}; {wall:.0f} s wall "
                 f"(adaptation {result.adapt_seconds:.0f} s)",
                 flush=True,
             )
