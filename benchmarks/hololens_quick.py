@@ -98,7 +98,8 @@ def main() -> int:
             sp = ""
             curve = m.sparsification
             if curve and 0.5 in curve["fractions"]:
-                sp = f", AbsRel of the 50 % most confident {curve['error'][curve['fractions'].index(0.5)]:.4f}"
+                best_half = curve["error"][curve["fractions"].index(0.5)]
+                sp = f", AbsRel of the 50 % most confident {best_half:.4f}"
             print(
                 f"{a.tag} {label} {kind}: {len(result.processed)}/{len(refs)} refs, coverage "
                 f"{s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under "
