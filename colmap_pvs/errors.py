@@ -29,3 +29,7 @@ class CheckpointError(ColmapPVSError):
 
 class ShapeError(ColmapPVSError, ValueError):
     """A tensor or array whose shape does not match the documented one."""
+
+
+class DistributedError(ColmapPVSError):
+    """A scale-out (Ray) failure: Ray missing, no workers, or a reference whose workers kept dying."""

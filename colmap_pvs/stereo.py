@@ -79,6 +79,22 @@ class StereoConfig:
     )
     threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
     min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
+    # Scale-out (colmap_pvs.distributed; README "Scale out on Ray").
+    backend: Literal["local", "ray"] = field(
+        default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
+    )
+    ray_address: str = field(
+        default="", metadata={"help": "ray: empty starts a local Ray; 'auto' or HOST:PORT joins a cluster"}
+    )
+    ray_workers: int = field(default=0, metadata={"help": "ray: worker actors; 0: as many as the CPUs allow"})
+    ray_worker_threads: int = field(default=1, metadata={"help": "ray: torch threads (and CPUs) per worker"})
+    ray_max_retries: int = field(
+        default=3, metadata={"help": "ray: times a reference is retried after its worker died"}
+    )
+    ray_task_timeout: float = field(
+        default=0.0, metadata={"help": "ray: seconds after which a reference's worker is killed and the "
+                               "reference retried; 0: no limit"}
+    )
 
 
 @dataclass
@@ -248,65 +264,137 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
     return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis[0].cpu().numpy()
 
 
-def run_stereo(config: StereoConfig) -> StereoResult:
-    """Compute depth and normal maps for every reference image of the workspace.
+@dataclass(frozen=True)
+class RefOutcome:
+    """What :func:`process_reference` did for one reference and one pass."""
 
-    Resumable: images whose maps exist are skipped unless ``config.overwrite``.
-    Images without usable sources or sparse points are skipped with a warning.
-    """
+    name: str
+    stage: Literal["photometric", "geometric"]
+    status: Literal["computed", "done", "skipped"]
+    reason: str = ""
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class StereoContext:
+    """Everything loaded once per run (or once per Ray worker): workspace, sparse model, network."""
+
+    config: StereoConfig
+    workspace: Workspace
+    sparse: SparseModel
+    net: torch.nn.Module
+    checkpoint_path: Path
+    device: torch.device
+    selection: ViewSelection
+    references: dict[str, object]
+    id_order: np.ndarray
+
+
+def prepare_stereo(config: StereoConfig) -> StereoContext:
+    """Load the workspace, the sparse model, the view selection and the checkpoint (once)."""
     ws, model_sparse = load_workspace(config.workspace_path)
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     net, ckpt_path, _meta = load_stereo_model(config, device)
     selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
-    refs = choose_references(ws, model_sparse)
-    id_order = np.argsort(model_sparse.points.ids, kind="stable")
-    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ckpt_path),
-                model_config=net.config)
+    return StereoContext(
+        config=config,
+        workspace=ws,
+        sparse=model_sparse,
+        net=net,
+        checkpoint_path=ckpt_path,
+        device=device,
+        selection=selection,
+        references=choose_references(ws, model_sparse),
+        id_order=np.argsort(model_sparse.points.ids, kind="stable"),
+    )
+
+
+def _skip(name: str, stage, reason: str) -> RefOutcome:
+    logger.warning("skipping %s: %s", name, reason)
+    return RefOutcome(name, stage, "skipped", reason)
+
+
+def process_reference(
+    ctx: StereoContext, name: str, stage: Literal["photometric", "geometric"] = "photometric"
+) -> RefOutcome:
+    """Compute (if not current) and atomically write one reference's maps for one pass.
+
+    This single-pass version has the photometric pass only (it writes the geometric maps as copies).
+    """
+    if stage != "photometric":
+        raise ValueError(f"stage {stage!r}: this stereo step has a photometric pass only")
+    config, ws, model_sparse = ctx.config, ctx.workspace, ctx.sparse
+    if not config.overwrite and _is_done(ws, name):
+        return RefOutcome(name, stage, "done")
+    entry = ctx.selection.references.get(name)
+    if entry is None:
+        reason = next((sk.reason for sk in ctx.selection.skipped if sk.name == name), "not selectable")
+        return _skip(name, stage, reason)
+    sources = list(reference_sources(ctx.selection, name, ctx.references.get(name), config.num_views - 1))
+    if len(sources) < config.min_sources:
+        reason = f"only {len(sources)} source view(s) share points with it (need {config.min_sources})"
+        return _skip(name, stage, reason)
+    start = time.perf_counter()
+    images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
+    h, w = images.shape[-2:]
+    ref = model_sparse.image_by_name(name)
+    sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, ctx.id_order)
+    loaded = time.perf_counter()
+    try:
+        depth, conf, vis = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse, ctx.device)
+    except (RuntimeError, MemoryError) as exc:
+        if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
+            raise
+        reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
+        logger.error("skipping %s: %s (%s)", name, reason, exc)
+        return RefOutcome(name, stage, "skipped", reason)
+    inferred = time.perf_counter()
+    depth = np.where((conf >= config.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
+    normals = depth_to_normals(depth, Ks[0])
+    depth[~np.any(normals != 0, axis=-1)] = 0.0
+    _write_outputs(ws, name, depth, normals, conf)
+    if config.previews:
+        _write_previews(ws, name, depth, normals, conf, vis, sources, entry.depth_range)
+    end = time.perf_counter()
+    timings = {"load": loaded - start, "network": inferred - loaded, "write": end - inferred}
+    return RefOutcome(name, stage, "computed", seconds=end - start, timings=timings)
+
+
+def run_stereo(config: StereoConfig) -> StereoResult:
+    """Compute depth and normal maps for every reference image of the workspace.
+
+    Resumable: images whose maps exist are skipped unless ``config.overwrite``.
+    Images without usable sources or sparse points are skipped with a warning.
+    ``config.backend == "ray"`` spreads the references over a Ray cluster
+    (:func:`colmap_pvs.distributed.run_stereo_ray`).
+    """
+    if config.backend == "ray":
+        from .distributed import run_stereo_ray
+
+        return run_stereo_ray(config)
+    ctx = prepare_stereo(config)
+    ws, refs = ctx.workspace, ctx.references
+    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
+                model_config=ctx.net.config)
     result = StereoResult(workspace=ws)
     times: list[float] = []
-    bar = tqdm(refs.items(), desc="stereo", unit="image")
-    for name, spec in bar:
-        if not config.overwrite and _is_done(ws, name):
+    bar = tqdm(refs, desc="stereo", unit="image")
+    for name in bar:
+        outcome = process_reference(ctx, name, "photometric")
+        if outcome.status == "done":
             result.already_done.append(name)
-            continue
-        entry = selection.references.get(name)
-        if entry is None:
-            reason = next((sk.reason for sk in selection.skipped if sk.name == name), "not selectable")
-            logger.warning("skipping %s: %s", name, reason)
-            result.skipped[name] = reason
-            continue
-        sources = list(reference_sources(selection, name, spec, config.num_views - 1))
-        if len(sources) < config.min_sources:
-            reason = f"only {len(sources)} source view(s) share points with it (need {config.min_sources})"
-            logger.warning("skipping %s: %s", name, reason)
-            result.skipped[name] = reason
-            continue
-        result.sources[name] = sources
-        start = time.perf_counter()
-        images, Ks, poses = _prepare_views(ws, model_sparse, [name, *sources], config.max_image_size)
-        h, w = images.shape[-2:]
-        ref = model_sparse.image_by_name(name)
-        sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, id_order)
-        try:
-            depth, conf, vis = estimate_depth(net, images, Ks, poses, entry.depth_range, sparse, device)
-        except (RuntimeError, MemoryError) as exc:
-            if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
-                raise
-            reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
-            logger.error("skipping %s: %s (%s)", name, reason, exc)
-            result.skipped[name] = reason
-            continue
-        depth = np.where((conf >= config.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
-        normals = depth_to_normals(depth, Ks[0])
-        depth[~np.any(normals != 0, axis=-1)] = 0.0
-        _write_outputs(ws, name, depth, normals, conf)
-        if config.previews:
-            _write_previews(ws, name, depth, normals, conf, vis, sources, entry.depth_range)
-        times.append(time.perf_counter() - start)
-        result.processed.append(name)
-        bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
+        elif outcome.status == "skipped":
+            result.skipped[name] = outcome.reason
+        else:
+            result.processed.append(name)
+            result.sources[name] = list(
+                reference_sources(ctx.selection, name, refs[name], config.num_views - 1)
+            )
+            times.append(outcome.seconds)
+            bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
     done = [n for n in refs if _is_done(ws, n)]
     write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = float(np.mean(times)) if times else 0.0
