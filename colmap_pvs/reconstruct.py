@@ -69,7 +69,7 @@ class ReconstructConfig:
         default="local", metadata={"help": "stereo: local, or ray (one task per image on a Ray cluster)"}
     )
     ray_address: str = field(default="", metadata={"help": "stereo: Ray address; empty starts a local Ray"})
-    ray_workers: int = field(default=0, metadata={"help": "stereo: Ray workers; 0: as many as the CPUs allow"})
+    ray_workers: int = field(default=0, metadata={"help": "stereo: Ray workers; 0: fill the CPUs"})
     ray_worker_threads: int = field(default=1, metadata={"help": "stereo: torch threads per Ray worker"})
     fusion_method: Literal["pvs", "colmap"] = field(default="pvs", metadata={"help": "fusion method"})
     mesh: bool = field(default=True, metadata={"help": "build a Poisson mesh of the fused cloud"})

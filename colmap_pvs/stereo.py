@@ -86,7 +86,7 @@ class StereoConfig:
     ray_address: str = field(
         default="", metadata={"help": "ray: empty starts a local Ray; 'auto' or HOST:PORT joins a cluster"}
     )
-    ray_workers: int = field(default=0, metadata={"help": "ray: worker actors; 0: as many as the CPUs allow"})
+    ray_workers: int = field(default=0, metadata={"help": "ray: worker actors; 0: fill the CPUs"})
     ray_worker_threads: int = field(default=1, metadata={"help": "ray: torch threads (and CPUs) per worker"})
     ray_max_retries: int = field(
         default=3, metadata={"help": "ray: times a reference is retried after its worker died"}
