@@ -214,6 +214,8 @@ def _check_config(config: StereoConfig) -> None:
             raise ConfigError(f"{name} must be >= 0, got {getattr(config, name)}")
     if config.ray_worker_threads < 1:
         raise ConfigError(f"ray_worker_threads must be >= 1, got {config.ray_worker_threads}")
+    if config.ray_worker_memory < 0:
+        raise ConfigError(f"ray_worker_memory must be >= 0 (0: none), got {config.ray_worker_memory}")
     if config.ray_task_timeout < 0:
         raise ConfigError(f"ray_task_timeout must be >= 0 (0: no limit), got {config.ray_task_timeout}")
 
@@ -267,7 +269,7 @@ def _unwrap(exc: BaseException) -> BaseException:
 
 
 class _Driver:
-    def __init__(self, ray, config: StereoConfig, passes: tuple[str, ...]):
+    def __init__(self, ray, config: StereoConfig, passes: tuple[str, ...], joined: bool):
         from ray import exceptions as rex
 
         self.ray, self.config, self.passes = ray, config, passes
@@ -280,8 +282,10 @@ class _Driver:
         if self.num_workers * config.ray_worker_threads > cpus:
             logger.warning("stereo: %d workers x %d threads need more CPUs than the cluster has (%g); "
                            "some workers wait", self.num_workers, config.ray_worker_threads, cpus)
+        memory = int(config.ray_worker_memory * 2**30)
+        self._check_fits(memory, joined)
         self.actor_cls = ray.remote(StereoWorker).options(
-            num_cpus=config.ray_worker_threads, max_restarts=0, max_task_retries=0,
+            num_cpus=config.ray_worker_threads, memory=memory or None, max_restarts=0, max_task_retries=0,
             runtime_env={"env_vars": {"OMP_WAIT_POLICY": "PASSIVE"}},
         )
         self.deaths_left = self.num_workers * (config.ray_max_retries + 1)
@@ -292,6 +296,19 @@ class _Driver:
         self.timed_out: set = set()
         self.info: dict = {}  # actor id -> setup info
         self.plan: dict | None = None
+
+    def _check_fits(self, memory: int, joined: bool) -> None:
+        """Fail (or, joining a cluster an autoscaler may grow, warn) if no node can hold a worker."""
+        nodes = [n.get("Resources", {}) for n in self.ray.nodes() if n.get("Alive")]
+        need = {"CPU": self.config.ray_worker_threads, "memory": memory}
+        if any(all(res.get(k, 0) >= v for k, v in need.items()) for res in nodes):
+            return
+        have = ", ".join(f"{r.get('CPU', 0):g} CPUs / {r.get('memory', 0) / 2**30:.1f} GiB" for r in nodes)
+        msg = (f"no Ray node can hold one worker of ray_worker_threads={self.config.ray_worker_threads} CPUs "
+               f"and ray_worker_memory={self.config.ray_worker_memory:g} GiB (nodes: {have or 'none'})")
+        if not joined:
+            raise DistributedError(msg)
+        logger.warning("stereo: %s; waiting for the cluster to grow", msg)
 
     def spawn(self) -> None:
         actor = self.actor_cls.remote(self.wcfg)
@@ -424,7 +441,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     started = _connect(ray, config)
     driver = None
     try:
-        driver = _Driver(ray, config, passes)
+        driver = _Driver(ray, config, passes, joined=bool(config.ray_address))
         for _ in range(driver.num_workers):
             driver.spawn()
         plan = driver.wait_for_plan()

@@ -88,6 +88,9 @@ class StereoConfig:
     )
     ray_workers: int = field(default=0, metadata={"help": "ray: worker actors; 0: fill the CPUs"})
     ray_worker_threads: int = field(default=1, metadata={"help": "ray: torch threads (and CPUs) per worker"})
+    ray_worker_memory: float = field(
+        default=0.0, metadata={"help": "ray: GiB of memory Ray reserves per worker when placing it; 0: none"}
+    )
     ray_max_retries: int = field(
         default=3, metadata={"help": "ray: times a reference is retried after its worker died"}
     )

@@ -175,7 +175,7 @@ def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene
     assert finished
     saved = json.loads((ws / "stereo" / CONFIG_FILENAME).read_text())
     assert saved["config"]["backend"] == "ray" and saved["checkpoint_used"] == str(scene["ckpt"])
-    result = run_stereo(_config(ws, scene["ckpt"]))
+    result = run_stereo(_config(ws, scene["ckpt"], ray_workers=1))
     assert len(result.already_done) >= len(finished) and len(result.already_done) + len(result.processed) == 8
     assert result.retried == {}
     for name, mtime in finished.items():  # kept, not recomputed
@@ -256,6 +256,12 @@ def test_ray_worker_cannot_read_workspace(ray_cluster, tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"Ray worker on {socket.gethostname()}" in err and str(missing) in err
     assert "every Ray node sees" in err and "Traceback" not in err
+
+
+def test_ray_worker_that_fits_no_node_is_refused(ray_cluster, scene, tmp_path):
+    ws = _copy(scene, tmp_path)
+    with pytest.raises(DistributedError, match="no Ray node can hold one worker of ray_worker_threads=3"):
+        run_stereo(_config(ws, scene["ckpt"], ray_worker_threads=3, ray_workers=1, ray_address=""))
 
 
 def test_reconstruct_stereo_step_on_ray(ray_cluster, analytic_scene, tmp_path):
