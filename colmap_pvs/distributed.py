@@ -69,10 +69,13 @@ class DistributedStereoResult(StereoResult):
     Attributes:
         workers: actors that did work; nodes: their host names.
         retried: ``"NAME/PASS"`` -> how many times its worker died under it (it then ran elsewhere).
-        wall_seconds: wall time of the whole run (workers starting included).
+        wall_seconds: wall time of the whole run (workers starting included); ``seconds_per_image`` is
+            that per computed reference, ``seconds_per_task`` the mean compute time of one task on
+            one worker.
     """
 
     workers: int = 0
+    seconds_per_task: float = 0.0
     nodes: list[str] = field(default_factory=list)
     retried: dict[str, int] = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -82,26 +85,27 @@ class DistributedStereoResult(StereoResult):
 
 
 class TaskGraph:
-    """Tasks ``(reference, pass)`` and their order: a later pass of R waits for the previous pass of
-    R and of R's sources (sources that are references themselves; ``None``: wait for every one)."""
+    """Tasks ``(image, pass)`` and their order: a later pass of reference R waits for the previous pass
+    of R and of R's sources (``None``: for every image). ``auxiliary`` images (sources that are not
+    references) get the first pass only."""
 
-    def __init__(self, references: list[str], passes: tuple[str, ...], sources: dict[str, list[str] | None]):
-        self.tasks: list[Task] = [(name, stage) for stage in passes for name in references]
-        refs = set(references)
+    def __init__(self, references: list[str], passes: tuple[str, ...], sources: dict[str, list[str] | None],
+                 auxiliary: list[str] = ()):
+        first = [*references, *auxiliary]
+        self.tasks: list[Task] = [(name, passes[0]) for name in first]
+        self.tasks += [(name, stage) for stage in passes[1:] for name in references]
         self._waiting: dict[Task, set[Task]] = {}
         self._dependents: dict[Task, list[Task]] = {t: [] for t in self.tasks}
         self._ready: deque[Task] = deque()
         self.finished: set[Task] = set()
+        self._ready.extend((name, passes[0]) for name in first)
         for i, stage in enumerate(passes):
-            for name in references:
+            for name in references if i else ():
                 task = (name, stage)
-                if i == 0:
-                    self._ready.append(task)
-                    continue
-                prev = passes[i - 1]
+                pool = first if i == 1 else references  # the images the previous pass ran on
                 srcs = sources.get(name)
-                needed = references if srcs is None else [name, *(s for s in srcs if s in refs)]
-                self._waiting[task] = {(s, prev) for s in needed}
+                needed = set(pool) & ({name, *srcs} if srcs is not None else set(pool))
+                self._waiting[task] = {(s, passes[i - 1]) for s in needed}
                 for dep in self._waiting[task]:
                     self._dependents[dep].append(task)
 
@@ -166,19 +170,17 @@ class StereoWorker:
 
     def setup(self, passes: tuple[str, ...]) -> dict:
         """Check the workspace, :func:`prepare_stereo`, and return who we are plus the reference plan."""
-        from .stereo import prepare_stereo
+        from .stereo import auxiliary_references, prepare_stereo
 
         start = time.perf_counter()
         check_workspace_access(self.config)
         self.ctx = ctx = prepare_stereo(self.config)
         sources: dict[str, list[str] | None] = {}
-        if len(passes) > 1:  # only a later pass needs them (it reads the sources' maps)
-            for name, spec in ctx.references.items():
-                try:
-                    found = reference_sources(ctx.selection, name, spec, ctx.config.num_views - 1)
-                    sources[name] = list(found)
-                except (ColmapPVSError, KeyError, ValueError):
-                    sources[name] = None  # unknown: wait for every map of the previous pass
+        for name, spec in ctx.references.items():
+            try:
+                sources[name] = list(reference_sources(ctx.selection, name, spec, ctx.config.num_views - 1))
+            except (ColmapPVSError, KeyError, ValueError):
+                sources[name] = None  # unknown: a later pass waits for every map of the previous one
         return {
             "host": socket.gethostname(),
             "pid": os.getpid(),
@@ -186,7 +188,10 @@ class StereoWorker:
             "seconds": time.perf_counter() - start,
             "references": list(ctx.references),
             "sources": sources,
+            # Sources that are not references get the first pass too when a later pass reads them.
+            "auxiliary": list(auxiliary_references(ctx)) if len(passes) > 1 else [],
             "checkpoint": str(ctx.checkpoint_path),
+            "checkpoint_sha256": getattr(ctx, "checkpoint_sha256", None),
             "model_config": getattr(ctx.net, "config", None),
         }
 
@@ -374,14 +379,21 @@ class _Driver:
                                self.ray.available_resources().get("CPU", 0))
         return self.plan
 
-    def run(self, graph: TaskGraph, bar, on_outcome) -> dict[Task, int]:
-        """Hand out the tasks of ``graph`` until all finished; returns deaths per task."""
+    def run(self, graph: TaskGraph, bar, outcomes: dict) -> dict[Task, int]:
+        """Hand out the tasks of ``graph`` until all finished, filling ``outcomes``; returns deaths per
+        task. A later pass of a reference whose previous pass skipped it is not run (as locally)."""
         attempts: dict[Task, int] = {}
         while graph.remaining:
             while self.idle:
                 task = graph.pop()
                 if task is None:
                     break
+                i = self.passes.index(task[1])
+                prev = outcomes.get((task[0], self.passes[i - 1])) if i else None
+                if prev is not None and prev.status == "skipped":
+                    graph.finish(task)
+                    bar.update(1)
+                    continue
                 actor = self.idle.popleft()
                 self.running[actor.process.remote(*task)] = (actor, task, time.monotonic())
             if not self.running and not self.starting:
@@ -411,9 +423,9 @@ class _Driver:
                     self._lost(actor, f"{task[0]}/{task[1]}", exc)
                     bar.set_postfix(retries=sum(attempts.values()))
                     continue
+                outcomes[task] = outcome
                 graph.finish(task)
                 self.idle.append(actor)
-                on_outcome(outcome)
                 bar.update(1)
             if self.config.ray_task_timeout > 0:
                 now = time.monotonic()
@@ -424,6 +436,40 @@ class _Driver:
                         self.timed_out.add(ref)
                         self.ray.kill(actor, no_restart=True)
         return attempts
+
+
+def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, wall: float):
+    """The run's :class:`DistributedStereoResult` (fields as the local backend fills them) and
+    ``fusion.cfg``: the references whose final maps exist."""
+    result = DistributedStereoResult(workspace=ws, wall_seconds=wall)
+    refs, aux = plan["references"], plan["auxiliary"]
+    lists = {passes[0]: (result.processed, result.already_done, result.skipped)}
+    if len(passes) > 1 and hasattr(result, "geometric_processed"):  # the two-pass StereoResult
+        lists[passes[1]] = (result.geometric_processed, result.geometric_done, result.geometric_skipped)
+        result.auxiliary = list(aux)
+    computed, seconds = set(), []
+    for (name, _stage), out in outcomes.items():
+        if out.status == "computed":
+            computed.add(name)
+            seconds.append(out.seconds)
+    for stage, (processed, done, skipped) in lists.items():
+        for name in [*refs, *aux] if stage == passes[0] else refs:
+            out = outcomes.get((name, stage))
+            if out is None:
+                continue  # skipped by an earlier pass
+            if out.status == "computed":
+                processed.append(name)
+            elif out.status == "done":
+                done.append(name)
+            else:
+                skipped[name] = out.reason
+    result.sources = {n: s for n, s in plan["sources"].items() if s is not None and n not in result.skipped}
+    kind = passes[-1]
+    write_fusion_cfg(ws.fusion_cfg, [n for n in refs if ws.depth_map_path(n, kind).is_file()
+                                     and ws.normal_map_path(n, kind).is_file()])
+    result.seconds_per_image = wall / len(computed) if computed else 0.0
+    result.seconds_per_task = sum(seconds) / len(seconds) if seconds else 0.0
+    return result
 
 
 def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
@@ -448,37 +494,24 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
         ws = Workspace(driver.wcfg.workspace_path)
         if not ws.stereo_dir.is_dir():
             raise WorkspaceError(f"the Ray driver cannot see {str(ws.stereo_dir)!r}; {SHARED_FS_HINT}")
+        extra = {"checkpoint_sha256": plan["checkpoint_sha256"]} if plan["checkpoint_sha256"] else {}
         save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=plan["checkpoint"],
-                    model_config=plan["model_config"])
+                    model_config=plan["model_config"], **extra)
         remove_stale_temp_files(ws.stereo_dir)  # from a run whose driver was killed
         refs: list[str] = plan["references"]
-        graph = TaskGraph(refs, passes, plan["sources"])
+        graph = TaskGraph(refs, passes, plan["sources"], plan["auxiliary"])
         outcomes: dict[Task, object] = {}
         bar = tqdm(total=len(graph.tasks), desc=f"stereo on Ray ({'+'.join(passes)})", unit="task")
         try:
-            attempts = driver.run(graph, bar, lambda o: outcomes.__setitem__((o.name, o.stage), o))
+            attempts = driver.run(graph, bar, outcomes)
         finally:
             bar.close()
             driver.kill_all()
         remove_stale_temp_files(ws.stereo_dir)
-        result = DistributedStereoResult(workspace=ws)
-        times = []
-        for name in refs:
-            per_pass = [outcomes[(name, stage)] for stage in passes]
-            skipped = next((o for o in per_pass if o.status == "skipped"), None)
-            if skipped is not None:
-                result.skipped[name] = skipped.reason
-            elif all(o.status == "done" for o in per_pass):
-                result.already_done.append(name)
-            else:
-                result.processed.append(name)
-                times.append(sum(o.seconds for o in per_pass))
-        write_fusion_cfg(ws.fusion_cfg, [n for n in refs if n not in result.skipped])
-        result.seconds_per_image = sum(times) / len(times) if times else 0.0
+        result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}
         result.workers = len(driver.info)
         result.nodes = sorted({i["host"] for i in driver.info.values()})
-        result.wall_seconds = time.perf_counter() - wall
         logger.info(
             "stereo (Ray, %d workers on %d node(s)): %d computed, %d already done, %d skipped, "
             "%d retried after a worker died, %.1f s", result.workers, len(result.nodes),

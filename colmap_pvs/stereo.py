@@ -366,6 +366,19 @@ def process_reference(
     return RefOutcome(name, stage, "computed", seconds=end - start, timings=timings)
 
 
+def auxiliary_references(ctx: StereoContext) -> list[str]:
+    """Sources of the references that are not references themselves (a geometric pass reads their
+    photometric maps, so they get a photometric pass too)."""
+    refs = set(ctx.references)
+    extra: dict[str, None] = {}
+    for name, spec in ctx.references.items():
+        if name in ctx.selection.references:
+            for src in reference_sources(ctx.selection, name, spec, ctx.config.num_views - 1):
+                if src not in refs:
+                    extra[src] = None
+    return sorted(extra)
+
+
 def run_stereo(config: StereoConfig) -> StereoResult:
     """Compute depth and normal maps for every reference image of the workspace.
 

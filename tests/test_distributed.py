@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,6 @@ from colmap_pvs.reconstruct import ReconstructConfig
 from colmap_pvs.stereo import CONFIG_FILENAME, StereoConfig, run_stereo
 
 TEST_SECONDS = 120  # no test of this module may run longer (SIGALRM)
-MAP_GLOBS = ("depth_maps/*.bin", "normal_maps/*.bin", "confidence_maps/*.bin")
 
 
 # --------------------------------------------------------------------------- without Ray
@@ -56,6 +56,24 @@ def test_task_graph_orders_passes_by_sources():
     graph.requeue(("c", "geometric"))  # lost with its worker: first in line again
     assert graph.pop() == ("c", "geometric")
     assert stereo_passes(StereoConfig(workspace_path=Path("x"))) == ("photometric",)
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=True)) == ("photometric", "geometric")
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=False)) == ("photometric",)
+
+
+def test_task_graph_auxiliary_images_get_the_first_pass_only():
+    graph = TaskGraph(["a", "b"], ("photometric", "geometric"), {"a": ["s"], "b": ["a"]}, ["s"])
+    assert graph.tasks == [("a", "photometric"), ("b", "photometric"), ("s", "photometric"),
+                           ("a", "geometric"), ("b", "geometric")]
+    for _ in range(3):
+        graph.pop()
+    graph.finish(("a", "photometric"))
+    graph.finish(("b", "photometric"))
+    assert graph.pop() == ("b", "geometric") and graph.pop() is None  # a waits for its source s
+    graph.finish(("s", "photometric"))
+    assert graph.pop() == ("a", "geometric")
+    graph.finish(("a", "geometric"))
+    graph.finish(("b", "geometric"))
+    assert graph.remaining == 0
 
 
 def test_remove_stale_temp_files(tmp_path):
@@ -144,10 +162,11 @@ def _copy(scene, tmp_path) -> Path:
 
 
 def _assert_same_maps(ws: Path, local: Path) -> None:
-    files = sorted(p.relative_to(local / "stereo") for g in MAP_GLOBS for p in (local / "stereo").glob(g))
-    assert len(files) == 8 * 5  # depth + normal (photometric, geometric), confidence
-    ours = sorted(p.relative_to(ws / "stereo") for g in MAP_GLOBS for p in (ws / "stereo").glob(g))
-    assert ours == files
+    """Every ``.bin`` map under ``stereo/`` (depth, normal, confidence, ... of every pass) is
+    byte-identical to the local run's, the same files exist, and no temporary file is left."""
+    files = sorted(p.relative_to(local / "stereo") for p in (local / "stereo").rglob("*.bin"))
+    assert len(list((local / "stereo" / "depth_maps").glob("*.geometric.bin"))) == 8
+    assert sorted(p.relative_to(ws / "stereo") for p in (ws / "stereo").rglob("*.bin")) == files
     for rel in files:
         assert (ws / "stereo" / rel).read_bytes() == (local / "stereo" / rel).read_bytes(), rel
     assert read_fusion_cfg(ws / "stereo" / "fusion.cfg") == read_fusion_cfg(local / "stereo" / "fusion.cfg")
