@@ -55,7 +55,6 @@ def test_task_graph_orders_passes_by_sources():
     assert sorted(ready) == [("c", "geometric"), ("d", "geometric")] and graph.pop() is None
     graph.requeue(("c", "geometric"))  # lost with its worker: first in line again
     assert graph.pop() == ("c", "geometric")
-    assert stereo_passes(StereoConfig(workspace_path=Path("x"))) == ("photometric",)
     assert stereo_passes(types.SimpleNamespace(geom_consistency=True)) == ("photometric", "geometric")
     assert stereo_passes(types.SimpleNamespace(geom_consistency=False)) == ("photometric",)
 
