@@ -488,9 +488,14 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     driver = None
     try:
         driver = _Driver(ray, config, passes, joined=bool(config.ray_address))
-        for _ in range(driver.num_workers):
+        # Test-time adaptation (adapt_steps) runs once, in the first worker; the others start after it
+        # and reuse its adapted checkpoint (stereo/adapt/adapted.pt) instead of each adapting again.
+        first = 1 if getattr(config, "adapt_steps", 0) > 0 else driver.num_workers
+        for _ in range(first):
             driver.spawn()
         plan = driver.wait_for_plan()
+        for _ in range(driver.num_workers - first):
+            driver.spawn()
         ws = Workspace(driver.wcfg.workspace_path)
         if not ws.stereo_dir.is_dir():
             raise WorkspaceError(f"the Ray driver cannot see {str(ws.stereo_dir)!r}; {SHARED_FS_HINT}")

@@ -79,6 +79,18 @@ class StereoConfig:
     )
     threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
     min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
+    adapt_steps: int = field(
+        default=0,
+        metadata={
+            "help": "test-time adaptation: fine-tune a copy of the network for this many steps on the "
+            "workspace's own images (self-supervised) before inference; 0 = off"
+        },
+    )
+    adapt_max_seconds: float = field(
+        default=0.0, metadata={"help": "test-time adaptation: time limit in seconds (0 = none)"}
+    )
+    adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
+    adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
     # Scale-out (colmap_pvs.distributed; README "Scale out on Ray").
     backend: Literal["local", "ray"] = field(
         default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
@@ -110,6 +122,8 @@ class StereoResult:
     skipped: dict[str, str] = field(default_factory=dict)
     sources: dict[str, list[str]] = field(default_factory=dict)
     seconds_per_image: float = 0.0
+    adapt_seconds: float = 0.0
+    adapt_seconds_per_image: float = 0.0
 
 
 def resolve_device(name: str) -> torch.device:
@@ -145,6 +159,33 @@ def load_stereo_model(config: StereoConfig, device: torch.device):
         model.load_state_dict(state)
     model.eval().to(device)
     return model, path, meta
+
+
+def adapt_config(config: StereoConfig):
+    """The :class:`~colmap_pvs.adapt.AdaptConfig` of a stereo run's ``adapt_*`` settings."""
+    from .adapt import AdaptConfig
+
+    return AdaptConfig(
+        steps=config.adapt_steps,
+        max_seconds=config.adapt_max_seconds,
+        lr=config.adapt_lr,
+        seed=config.adapt_seed,
+        num_views=config.num_views,
+        threads=config.threads,
+    )
+
+
+def _adapt(config: StereoConfig, ws: Workspace, base: Path, device: torch.device):
+    """Test-time adaptation of ``base`` on the workspace; returns ``(net, adapted path, seconds)``."""
+    from .adapt import adapt_checkpoint
+
+    done = adapt_checkpoint(ws.root, ws.stereo_dir, base, adapt_config(config))
+    net, path, _ = load_stereo_model(replace_config(config, checkpoint=done.checkpoint), device)
+    logger.info(
+        "test-time adaptation: %d steps, %.1f s (%s)", done.steps, done.seconds,
+        "reused" if done.reused else "computed",
+    )
+    return net, path, done.seconds
 
 
 def choose_references(ws: Workspace, model: SparseModel) -> dict[str, object]:
@@ -292,6 +333,7 @@ class StereoContext:
     selection: ViewSelection
     references: dict[str, object]
     id_order: np.ndarray
+    adapt_seconds: float = 0.0  # test-time adaptation (0: none, or reused)
 
 
 def prepare_stereo(config: StereoConfig) -> StereoContext:
@@ -301,6 +343,9 @@ def prepare_stereo(config: StereoConfig) -> StereoContext:
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     net, ckpt_path, _meta = load_stereo_model(config, device)
+    adapt_seconds = 0.0
+    if config.adapt_steps > 0:
+        net, ckpt_path, adapt_seconds = _adapt(config, ws, ckpt_path, device)
     selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
     return StereoContext(
         config=config,
@@ -312,6 +357,7 @@ def prepare_stereo(config: StereoConfig) -> StereoContext:
         selection=selection,
         references=choose_references(ws, model_sparse),
         id_order=np.argsort(model_sparse.points.ids, kind="stable"),
+        adapt_seconds=adapt_seconds,
     )
 
 
@@ -395,7 +441,8 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     ws, refs = ctx.workspace, ctx.references
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
                 model_config=ctx.net.config)
-    result = StereoResult(workspace=ws)
+    result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
+    result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(refs))
     times: list[float] = []
     bar = tqdm(refs, desc="stereo", unit="image")
     for name in bar:

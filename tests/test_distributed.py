@@ -294,3 +294,28 @@ def test_reconstruct_stereo_step_on_ray(ray_cluster, analytic_scene, tmp_path):
     assert len(list((stereo / "depth_maps").glob("*.geometric.bin"))) == 5
     saved = json.loads((stereo / CONFIG_FILENAME).read_text())["config"]
     assert {k: saved[k] for k in ("backend", "ray_workers")} == {"backend": "ray", "ray_workers": 1}
+
+
+def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_path):
+    """With test-time adaptation the first worker adapts, the others reuse its weights: the maps equal
+    a local adapted run's."""
+    import torch
+
+    ckpt = make_tiny_checkpoint(tmp_path / "base.pt", channels_last=False)
+    runs = {}
+    for backend in ("local", "ray"):
+        ws = tmp_path / backend
+        shutil.copytree(analytic_scene["root"], ws)
+        for sub in ("depth_maps", "normal_maps"):
+            shutil.rmtree(ws / "stereo" / sub)
+        threads = torch.get_num_threads()
+        try:
+            runs[backend] = run_stereo(StereoConfig(
+                workspace_path=ws, checkpoint=ckpt, num_views=3, max_image_size=160, min_confidence=0.0,
+                adapt_steps=2, threads=1, backend=backend, ray_workers=2, ray_worker_threads=1))
+        finally:
+            torch.set_num_threads(threads)
+    assert runs["local"].adapt_seconds > 0 and len(runs["ray"].processed) == 5
+    assert (tmp_path / "ray" / "stereo" / "adapt" / "adapted.pt").is_file()
+    for f in sorted((tmp_path / "local" / "stereo" / "depth_maps").glob("*.bin")):
+        assert (tmp_path / "ray" / "stereo" / "depth_maps" / f.name).read_bytes() == f.read_bytes(), f.name

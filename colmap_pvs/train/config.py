@@ -23,6 +23,8 @@ from ..errors import ConfigError
 from ..model import PVSNetConfig
 from ..synthetic import SyntheticDatasetConfig
 from .mvsnet_dataset import MVSNetDatasetConfig
+from .real_dataset import RealDatasetConfig
+from .selfsup import SelfSupConfig
 
 #: Fields that may differ between a run and the checkpoint it resumes from (they do not
 #: change the optimisation trajectory).
@@ -62,6 +64,20 @@ class TrainConfig:
     )
     mvsnet: MVSNetDatasetConfig = field(
         default_factory=MVSNetDatasetConfig, metadata={"help": "MVSNet-format dataset (dataset=mvsnet)"}
+    )
+    real: RealDatasetConfig = field(
+        default_factory=RealDatasetConfig,
+        metadata={"help": "real scenes without GT for self-supervised samples (used when real_fraction > 0)"},
+    )
+    real_fraction: float = field(
+        default=0.0,
+        metadata={
+            "help": "fraction of training samples drawn from the real scenes (self-supervised); "
+            "0 = none, 1 = real only (no synthetic/MVSNet training samples)"
+        },
+    )
+    selfsup: SelfSupConfig = field(
+        default_factory=SelfSupConfig, metadata={"help": "self-supervised loss of the real samples"}
     )
     steps: int = field(
         default=20000, metadata={"help": "total optimizer steps of the run (resuming continues)"}
@@ -173,6 +189,16 @@ class TrainConfig:
         need(self.log_every >= 1, f"log_every must be >= 1, got {self.log_every}")
         need(self.val_every >= 0, f"val_every must be >= 0, got {self.val_every}")
         need(self.val_samples >= 1, f"val_samples must be >= 1, got {self.val_samples}")
+        need(0.0 <= self.real_fraction <= 1.0, f"real_fraction must be in [0, 1], got {self.real_fraction}")
+        need(
+            self.real_fraction == 0.0 or len(self.real.roots) > 0,
+            "real_fraction > 0 needs real.roots (folders with images/ and a COLMAP model)",
+        )
+        need(
+            self.real_fraction in (0.0, 1.0) or self.batch_size == 1,
+            f"mixing real and synthetic samples (real_fraction={self.real_fraction}) needs batch_size 1, "
+            f"got {self.batch_size}",
+        )
         need(
             self.dataset != "mvsnet" or self.mvsnet.root is not None,
             "dataset=mvsnet needs mvsnet.root (the MVSNet-format dataset folder)",

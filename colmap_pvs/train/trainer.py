@@ -61,6 +61,7 @@ from ..errors import CheckpointError, ColmapPVSError, ConfigError
 from ..model import PVSNet, load_checkpoint, save_checkpoint
 from .config import RESUMABLE_CHANGES, TrainConfig
 from .losses import depth_loss, output_metrics
+from .selfsup import selfsup_loss
 
 logger = logging.getLogger(__name__)
 
@@ -151,13 +152,25 @@ def build_datasets(config: TrainConfig) -> tuple[Dataset, Dataset | None]:
     ``data.seed + val_seed_offset`` (other scenes). MVSNet: ``config.mvsnet.scans`` and,
     when non-empty, ``config.mvsnet.val_scans``.
     """
+    train_ds, val_ds = _build_supervised(config)
+    if config.real_fraction > 0:
+        from .real_dataset import MixedDataset, RealMVSDataset
+
+        real = RealMVSDataset(config.real, cache_dir=Path(config.output_dir) / "real_cache")
+        train_ds = MixedDataset(train_ds, real, config.real_fraction, config.seed)
+    return train_ds, val_ds
+
+
+def _build_supervised(config: TrainConfig) -> tuple[Dataset | None, Dataset | None]:
+    """The supervised part of :func:`build_datasets` (train is ``None`` when ``real_fraction == 1``)."""
+    need_train = config.real_fraction < 1.0
     if config.dataset == "synthetic":
         from ..synthetic import SyntheticMVSDataset
 
         data = config.data
         if data.cache_dir is None:
             data = replace_config(data, cache_dir=Path(config.output_dir) / "scene_cache")
-        train_ds = SyntheticMVSDataset(data)
+        train_ds = SyntheticMVSDataset(data) if need_train else None
         val_ds = None
         if config.val_every > 0:
             val_cfg = replace_config(data, seed=data.seed + config.val_seed_offset)
@@ -165,7 +178,7 @@ def build_datasets(config: TrainConfig) -> tuple[Dataset, Dataset | None]:
         return train_ds, val_ds
     from .mvsnet_dataset import MVSNetDataset
 
-    train_ds = MVSNetDataset(config.mvsnet)
+    train_ds = MVSNetDataset(config.mvsnet) if need_train else None
     val_ds = None
     if config.val_every > 0 and config.mvsnet.val_scans:
         val_ds = MVSNetDataset(config.mvsnet, scans=config.mvsnet.val_scans)
@@ -515,6 +528,22 @@ class Trainer:
 
     def _loss(self, out, batch: dict[str, torch.Tensor]):
         cfg = self.config
+        is_real = batch.get("is_real")
+        if is_real is not None and bool(is_real.any()):
+            if not bool(is_real.all()):
+                raise ColmapPVSError("a batch mixes real and synthetic samples; use batch_size 1")
+            return selfsup_loss(
+                out.depths,
+                batch["photo_images"],
+                batch["intrinsics"],
+                batch["cam_from_world"],
+                batch["label_depth"],
+                batch["depth_min"],
+                batch["depth_max"],
+                cfg.model.loss_weights,
+                self._scales() or cfg.model.output_scales,
+                cfg.selfsup,
+            )
         return depth_loss(
             out.depths,
             batch["depth"],

@@ -1,0 +1,114 @@
+"""Test-time adaptation (colmap_pvs.adapt) and its hook in the stereo step."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import make_tiny_checkpoint
+
+from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
+from colmap_pvs.errors import ConfigError
+from colmap_pvs.model import load_checkpoint
+from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.train.real_dataset import RealDatasetConfig, RealMVSDataset
+from colmap_pvs.train.selfsup import selfsup_loss
+
+FAST = dict(width=128, height=96, max_image_size=160, num_views=3, threads=1)
+
+
+@pytest.fixture
+def workspace(analytic_scene, tmp_path) -> Path:
+    root = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], root)
+    shutil.rmtree(root / "stereo" / "depth_maps")
+    shutil.rmtree(root / "stereo" / "normal_maps")
+    return root
+
+
+@pytest.fixture
+def base(tmp_path) -> Path:
+    return make_tiny_checkpoint(tmp_path / "base.pt", channels_last=False)
+
+
+def _weights(path: Path) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in load_checkpoint(path)[0].parameters()]
+
+
+def test_adaptation_writes_weights_and_reuses_or_redoes_them(workspace, base):
+    stereo_dir = workspace / "stereo"
+    cfg = AdaptConfig(steps=2, lr=1e-3, **FAST)
+    first = adapt_checkpoint(workspace, stereo_dir, base, cfg, progress=False)
+    assert not first.reused and first.steps == 2 and first.checkpoint.is_file()
+    assert any(not torch.equal(a, b) for a, b in zip(_weights(base), _weights(first.checkpoint), strict=True))
+    meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
+    assert meta["steps"] == 2 and meta["fingerprint"]["settings"]["lr"] == 1e-3
+    again = adapt_checkpoint(workspace, stereo_dir, base, cfg, progress=False)
+    assert again.reused and again.steps == 2
+    changed = adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=5e-4, **FAST),
+                               progress=False)
+    assert not changed.reused
+    assert json.loads((stereo_dir / "adapt" / "adapted.json").read_text())["fingerprint"]["settings"]["lr"] == 5e-4
+
+
+def test_adaptation_resumes_an_interrupted_run(workspace, base):
+    stereo_dir = workspace / "stereo"
+    adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=1e-3, **FAST), progress=False)
+    # as if killed after step 2 of 3: the adapted weights are gone, the run folder stays
+    (stereo_dir / "adapt" / "adapted.pt").unlink()
+    more = adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=1e-3, **FAST),
+                            progress=False)
+    assert not more.reused and more.steps == 2  # resumed at step 2: nothing left to do
+
+
+def test_time_limit_stops_early(workspace, base):
+    done = adapt_checkpoint(
+        workspace, workspace / "stereo", base, AdaptConfig(steps=500, max_seconds=0.5, **FAST), progress=False
+    )
+    assert 1 <= done.steps < 500 and done.checkpoint.is_file()
+
+
+def test_adaptation_lowers_the_self_supervised_loss(workspace, base):
+    data = RealMVSDataset(
+        RealDatasetConfig(roots=(workspace,), width=128, height=96, max_image_size=160, num_best=2,
+                          num_worst=0, seed=123, min_points=5),
+        cache_dir=workspace / "cache",
+    )
+    batches = [{k: v[None] for k, v in data[i].items()} for i in range(len(data))]
+
+    def loss(path: Path) -> float:
+        net, _ = load_checkpoint(path)
+        net.eval()
+        total = 0.0
+        with torch.no_grad():
+            for b in batches:
+                out = net(b["images"], b["intrinsics"], b["cam_from_world"], b["depth_min"], b["depth_max"],
+                          sparse_depth=b["sparse_depth"])
+                total += float(selfsup_loss(out.depths, b["photo_images"], b["intrinsics"],
+                                            b["cam_from_world"], b["label_depth"], b["depth_min"],
+                                            b["depth_max"], net.config.loss_weights,
+                                            net.config.output_scales).total)
+        return total / len(batches)
+
+    done = adapt_checkpoint(workspace, workspace / "stereo", base, AdaptConfig(steps=12, lr=3e-3, **FAST),
+                            progress=False)
+    assert loss(done.checkpoint) < 0.98 * loss(base)  # 12 steps of a tiny random net
+
+
+def test_stereo_runs_adaptation_first(workspace, base):
+    result = run_stereo(
+        StereoConfig(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
+                     adapt_steps=2, min_confidence=0.0)
+    )
+    assert result.processed and result.adapt_seconds > 0 and result.adapt_seconds_per_image > 0
+    assert (workspace / "stereo" / "adapt" / "adapted.pt").is_file()
+
+
+def test_bad_adaptation_settings():
+    with pytest.raises(ConfigError):
+        AdaptConfig(steps=-1)
+    with pytest.raises(ConfigError):
+        AdaptConfig(steps=1, lr=0.0)

@@ -1,0 +1,164 @@
+"""Real training samples from COLMAP models (colmap_pvs.train.real_dataset) and mixed training."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scenes import render_view
+from tiny_models import TINY_PVSNET
+
+from colmap_pvs.config import replace_config
+from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.train import TrainConfig, Trainer
+from colmap_pvs.train.real_dataset import (
+    REAL_SAMPLE_KEYS,
+    MixedDataset,
+    RealDatasetConfig,
+    RealMVSDataset,
+    open_scene,
+)
+from colmap_pvs.train.selfsup import photometric_error
+
+SMALL = dict(width=128, height=96, max_image_size=160, crop_scale=(0.6, 0.9), num_best=2, num_worst=1)
+
+
+def _dataset(gt: dict, tmp_path: Path, **kw) -> RealMVSDataset:
+    return RealMVSDataset(RealDatasetConfig(roots=(gt["root"],), **{**SMALL, **kw}), cache_dir=tmp_path)
+
+
+def test_sample_layout_and_disjoint_hints_and_labels(analytic_scene, tmp_path):
+    ds = _dataset(analytic_scene, tmp_path)
+    assert len(ds) == len(analytic_scene["names"])
+    s = ds[1]
+    assert tuple(s) == REAL_SAMPLE_KEYS
+    assert s["images"].shape == s["photo_images"].shape == (4, 3, 96, 128)
+    assert s["intrinsics"].shape == (4, 3, 3) and s["cam_from_world"].shape == (4, 4, 4)
+    assert s["sparse_depth"].shape == (1, 96, 128) and s["label_depth"].shape == (96, 128)
+    assert float(s["is_real"]) == 1.0 and float(s["depth"].abs().sum()) == 0.0
+    hints, labels = s["sparse_depth"][0] > 0, s["label_depth"] > 0
+    assert int(hints.sum()) > 5 and int(labels.sum()) > 5
+    assert not bool((hints & labels).any())
+    # jitter changes the network input, never the photometric-loss images
+    assert not torch.equal(s["images"], s["photo_images"])
+    assert float(s["depth_min"]) < float(s["depth_max"])
+    # deterministic in the index
+    t = ds[1]
+    assert all(torch.equal(s[k], t[k]) for k in REAL_SAMPLE_KEYS)
+
+
+def test_hint_fraction_extremes(analytic_scene, tmp_path):
+    none = _dataset(analytic_scene, tmp_path, hint_fraction=0.0)[0]
+    every = _dataset(analytic_scene, tmp_path, hint_fraction=1.0)[0]
+    assert float(none["sparse_depth"].sum()) == 0.0 and float(none["label_depth"].sum()) > 0
+    assert float(every["label_depth"].sum()) == 0.0 and float(every["sparse_depth"].sum()) > 0
+
+
+def test_sources_follow_the_anti_noise_strategy(analytic_scene, tmp_path):
+    ds = _dataset(analytic_scene, tmp_path, num_best=1, num_worst=1, shuffle_sources=False)
+    scene = ds.scenes[0]
+    ref = ds.index[2][1]
+    row = scene.selection.score_row(ref)
+    order = np.argsort(-row)
+    cands = [i for i in order if np.isfinite(row[i]) and row[i] > 0]
+    s = ds[2]
+    model = scene.model
+    poses = s["cam_from_world"].numpy()
+    expected = [cands[0], cands[-1]]
+    for k, idx in enumerate(expected, start=1):
+        im = model.image_by_name(scene.selection.names[idx])
+        np.testing.assert_allclose(poses[k, :3], im.cam_from_world, atol=1e-5)
+
+
+def test_crops_keep_the_geometry_exact(analytic_scene, tmp_path):
+    """The true depth rendered with the sample's own K and pose explains the cropped images."""
+    ds = _dataset(analytic_scene, tmp_path)
+    s = ds[3]
+    K0 = s["intrinsics"][0].double().numpy()
+    pose0 = s["cam_from_world"][0].double().numpy()[:3]
+    depth = render_view(analytic_scene["scene"], K0, pose0, 128, 96)["depth"]
+    d = torch.as_tensor(depth, dtype=torch.float32)[None]
+    args = (s["photo_images"][None], s["intrinsics"][None], s["cam_from_world"][None])
+    err, mask = photometric_error(*args, d)
+    mask &= d > 0
+    wrong, _ = photometric_error(*args, d * 1.15)
+    assert float(mask.float().mean()) > 0.3
+    assert float(err[mask].mean()) < 0.6 * float(wrong[mask].mean())
+    # the hints sit on the true surface
+    hints = s["sparse_depth"][0].numpy()
+    m = hints > 0
+    rel = np.abs(hints[m] - depth[m]) / depth[m]
+    assert np.median(rel) < 0.03
+
+
+def test_mixed_dataset_ratio_and_keys(analytic_scene, tmp_path):
+    real = _dataset(analytic_scene, tmp_path)
+
+    class Synth(torch.utils.data.Dataset):
+        def __len__(self):
+            return 50
+
+        def __getitem__(self, i):
+            return {"images": torch.zeros(3, 3, 8, 8), "depth": torch.ones(8, 8)}
+
+    mixed = MixedDataset(Synth(), real, 0.3, seed=1)
+    kinds = [mixed.is_real(i) for i in range(len(mixed))]
+    assert 0.1 < np.mean(kinds) < 0.5
+    syn = mixed[kinds.index(False)]
+    assert float(syn["is_real"]) == 0.0 and syn["label_depth"].shape == (8, 8)
+    assert float(mixed[kinds.index(True)]["is_real"]) == 1.0
+    with pytest.raises(ConfigError):
+        MixedDataset(None, real, 0.5)
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="multiple of 16"):
+        RealDatasetConfig(roots=(tmp_path,), width=100)
+    with pytest.raises(ConfigError, match="roots"):
+        RealMVSDataset(RealDatasetConfig(), cache_dir=tmp_path)
+    with pytest.raises(WorkspaceError, match="no COLMAP model"):
+        open_scene(tmp_path, tmp_path / "cache")
+    with pytest.raises(ConfigError, match="batch_size 1"):
+        TrainConfig(real_fraction=0.5, real=RealDatasetConfig(roots=(tmp_path,)), batch_size=2)
+    with pytest.raises(ConfigError, match="real.roots"):
+        TrainConfig(real_fraction=0.5)
+
+
+def test_distorted_scene_is_undistorted_once(shared_data_dir, tmp_path):
+    root = shared_data_dir / "real-train" / "strecha-entry-P10"
+    if not root.is_dir():
+        pytest.skip(f"{root} is missing")
+    images, model = open_scene(root, tmp_path)
+    assert images.parent.parent == tmp_path
+    assert all(cam.is_pinhole for cam in model.cameras.values())
+    stamp = (images.parent / "sparse").stat().st_mtime
+    images2, _ = open_scene(root, tmp_path)  # cached: not undistorted again
+    assert images2 == images and (images.parent / "sparse").stat().st_mtime == stamp
+
+
+def test_trainer_runs_self_supervised_steps_and_resumes(analytic_scene, tmp_path):
+    tiny = replace_config(TINY_PVSNET, confidence_planes=2, channels_last=False)
+    cfg = TrainConfig(
+        output_dir=tmp_path / "run",
+        model=tiny,
+        real=RealDatasetConfig(roots=(analytic_scene["root"],), **SMALL),
+        real_fraction=1.0,
+        steps=2,
+        val_every=0,
+        torch_threads=1,
+        progress=False,
+        checkpoint_every_seconds=0,
+    )
+    trainer = Trainer(cfg)
+    assert isinstance(trainer.train_dataset, MixedDataset)
+    before = [p.detach().clone() for p in trainer.model.parameters()]
+    trainer.train()
+    assert trainer.step == 2 and (tmp_path / "run" / "last.pt").is_file()
+    changed = any(not torch.equal(a, b) for a, b in zip(before, trainer.model.parameters(), strict=True))
+    assert changed
+    resumed = Trainer(replace_config(cfg, steps=3))
+    assert resumed.step == 2
+    resumed.train()
+    assert resumed.step == 3
