@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -267,6 +269,22 @@ def _connect(ray, config: StereoConfig) -> bool:
     return True
 
 
+_SIGNALS = ("SIGTERM", "SIGINT")
+
+
+def _signal_handlers() -> dict:
+    """This process's handlers of SIGTERM and SIGINT (``ray.init`` replaces them)."""
+    return {name: signal.getsignal(getattr(signal, name)) for name in _SIGNALS if hasattr(signal, name)}
+
+
+def _restore_signal_handlers(handlers: dict) -> None:
+    if threading.current_thread() is not threading.main_thread():
+        return  # only the main thread may set handlers (and only it had them replaced)
+    for name, handler in handlers.items():
+        if handler is not None:
+            signal.signal(getattr(signal, name), handler)
+
+
 def _unwrap(exc: BaseException) -> BaseException:
     """The exception a worker raised (Ray wraps it in a ``RayTaskError``)."""
     cause = getattr(exc, "cause", None)
@@ -484,6 +502,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     ray = _import_ray()
     passes = stereo_passes(config)
     wall = time.perf_counter()
+    handlers = _signal_handlers()
     started = _connect(ray, config)
     driver = None
     try:
@@ -529,3 +548,4 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
             driver.kill_all()
         if started:
             ray.shutdown()
+            _restore_signal_handlers(handlers)

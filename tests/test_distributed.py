@@ -117,12 +117,15 @@ def _deadline():
 def ray_cluster():
     """A local Ray with 2 CPUs and a small object store for this module; always shut down."""
     ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # ray.init replaces them
     ray.init(address="local", num_cpus=2, object_store_memory=80 * 1024**2, include_dashboard=False,
              logging_level="warning")
     try:
         yield ray
     finally:
         ray.shutdown()
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
 
 
 @pytest.fixture(scope="module")
@@ -170,6 +173,32 @@ def _assert_same_maps(ws: Path, local: Path) -> None:
         assert (ws / "stereo" / rel).read_bytes() == (local / "stereo" / rel).read_bytes(), rel
     assert read_fusion_cfg(ws / "stereo" / "fusion.cfg") == read_fusion_cfg(local / "stereo" / "fusion.cfg")
     assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(scene, tmp_path):
+    """The default `--ray_address ""` starts a local Ray (and stops it, restoring this process's signal
+    handlers); a worker killed with SIGKILL while it runs a task is replaced, its reference runs again
+    elsewhere, and every map equals the local run's. (Runs before the module's shared cluster starts.)"""
+    ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
+    if ray.is_initialized():
+        pytest.skip("a Ray is already running in this process")
+    before = signal.getsignal(signal.SIGTERM)
+    ws = _copy(scene, tmp_path)
+    killed: list[int] = []
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
+    killer.start()
+    try:
+        result = run_stereo(_config(ws, scene["ckpt"], ray_address=""))
+    finally:
+        stop.set()
+        killer.join(5)
+    assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
+    assert len(killed) == 1, "no worker was seen running a task"
+    assert killed[0] not in _worker_pids("any")
+    assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
+    assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
+    _assert_same_maps(ws, scene["local"])
 
 
 def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene, tmp_path):
@@ -227,24 +256,6 @@ def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
             killed.append(busy[0])
             return
         time.sleep(0.005)
-
-
-def test_ray_survives_a_worker_killed_mid_task(ray_cluster, scene, tmp_path):
-    ws = _copy(scene, tmp_path)
-    killed: list[int] = []
-    stop = threading.Event()
-    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
-    killer.start()
-    try:
-        result = run_stereo(_config(ws, scene["ckpt"]))
-    finally:
-        stop.set()
-        killer.join(5)
-    assert len(killed) == 1, "no worker was seen running a task"
-    assert not Path(f"/proc/{killed[0]}").exists() or killed[0] not in _worker_pids("any")
-    assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
-    assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
-    _assert_same_maps(ws, scene["local"])
 
 
 def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
