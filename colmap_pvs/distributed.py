@@ -285,10 +285,15 @@ def _restore_signal_handlers(handlers: dict) -> None:
             signal.signal(getattr(signal, name), handler)
 
 
-def _unwrap(exc: BaseException) -> BaseException:
-    """The exception a worker raised (Ray wraps it in a ``RayTaskError``)."""
+def _reraise(exc: BaseException):
+    """Raise the exception a worker raised (Ray wraps it in a ``RayTaskError``): our own errors as
+    they are (a clean message), anything else chained to Ray's error (which holds the remote traceback)."""
     cause = getattr(exc, "cause", None)
-    return cause if isinstance(cause, BaseException) else exc
+    if isinstance(cause, ColmapPVSError):
+        raise cause from None
+    if isinstance(cause, BaseException):
+        raise cause from exc
+    raise exc
 
 
 class _Driver:
@@ -342,7 +347,7 @@ class _Driver:
         for actor in self.actors:
             try:
                 self.ray.kill(actor, no_restart=True)
-            except Exception as exc:  # noqa: BLE001 - best effort at shutdown
+            except Exception as exc:  # best effort at shutdown
                 logger.debug("could not kill a Ray worker: %s", exc)
 
     def _worker_name(self, actor) -> str:
@@ -356,7 +361,7 @@ class _Driver:
             raise DistributedError(f"Ray workers died too often (last: {what}: {exc}); giving up")
         try:
             self.ray.kill(actor, no_restart=True)
-        except Exception:  # noqa: BLE001 - it is already gone
+        except Exception:  # it is already gone
             pass
         self.spawn()
 
@@ -365,7 +370,7 @@ class _Driver:
         try:
             info = self.ray.get(ref)
         except self.task_error as exc:
-            raise _unwrap(exc) from None
+            _reraise(exc)
         except self.deaths_types as exc:
             logger.warning("stereo: a Ray worker died while starting (%s); starting another",
                            type(exc).__name__)
@@ -393,7 +398,7 @@ class _Driver:
                 self.on_started(ref)
             if time.monotonic() - last_note > 60:
                 last_note = time.monotonic()
-                logger.warning("stereo: still waiting for Ray workers to start (cluster: %s available)",
+                logger.warning("stereo: still waiting for Ray workers to start (%g CPUs free in the cluster)",
                                self.ray.available_resources().get("CPU", 0))
         return self.plan
 
@@ -415,7 +420,8 @@ class _Driver:
                 actor = self.idle.popleft()
                 self.running[actor.process.remote(*task)] = (actor, task, time.monotonic())
             if not self.running and not self.starting:
-                raise DistributedError(f"{graph.remaining} stereo task(s) left but no Ray worker is alive")
+                why = "tasks wait for maps no task makes" if self.idle else "no Ray worker is alive"
+                raise DistributedError(f"{graph.remaining} stereo task(s) left but {why}")
             done, _ = self.ray.wait([*self.running, *self.starting], num_returns=1, timeout=POLL_SECONDS)
             for ref in done:
                 if ref in self.starting:
@@ -425,7 +431,7 @@ class _Driver:
                 try:
                     outcome = self.ray.get(ref)
                 except self.task_error as exc:
-                    raise _unwrap(exc) from None
+                    _reraise(exc)
                 except self.deaths_types as exc:
                     why = "timed out" if ref in self.timed_out else type(exc).__name__
                     attempts[task] = attempts.get(task, 0) + 1
