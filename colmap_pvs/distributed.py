@@ -466,18 +466,16 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
     """The run's :class:`DistributedStereoResult` (fields as the local backend fills them) and
     ``fusion.cfg``: the references whose final maps exist."""
     result = DistributedStereoResult(workspace=ws, wall_seconds=wall)
-    refs, aux = plan["references"], plan["auxiliary"]
+    refs, aux = plan["references"], set(plan["auxiliary"])
     lists = {passes[0]: (result.processed, result.already_done, result.skipped)}
     if len(passes) > 1 and hasattr(result, "geometric_processed"):  # the two-pass StereoResult
         lists[passes[1]] = (result.geometric_processed, result.geometric_done, result.geometric_skipped)
-        result.auxiliary = list(aux)
-    computed, seconds = set(), []
-    for (name, _stage), out in outcomes.items():
-        if out.status == "computed":
-            computed.add(name)
-            seconds.append(out.seconds)
+        result.auxiliary = list(plan["auxiliary"])
+    seconds = [out.seconds for out in outcomes.values() if out.status == "computed"]
+    computed = {name for (name, _stage), out in outcomes.items()
+                if out.status == "computed" and name not in aux}
     for stage, (processed, done, skipped) in lists.items():
-        for name in [*refs, *aux] if stage == passes[0] else refs:
+        for name in refs:  # auxiliary images are reported in result.auxiliary only
             out = outcomes.get((name, stage))
             if out is None:
                 continue  # skipped by an earlier pass
