@@ -23,6 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from colmap_pvs.cli.colmap_flags import add_colmap_flags, translate_colmap_flags
+
 from colmap_pvs import __version__
 from colmap_pvs.config import add_config_arguments, config_from_args, config_from_dict
 from colmap_pvs.errors import ColmapPVSError, ConfigError
@@ -42,6 +44,7 @@ class Command:
     planned: str | None = None  # set while the command is not built yet
     required: tuple[str, ...] = ()
     positional: tuple[str, ...] = ()  # config fields also accepted as optional positionals
+    aliases: tuple[str, ...] = ()  # e.g. COLMAP's own command name
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -67,6 +70,7 @@ COMMANDS: tuple[Command, ...] = (
         "colmap_pvs.stereo:run_stereo",
         "colmap_pvs.cli.reports:report_stereo",
         required=("workspace_path",),
+        aliases=("patch_match_stereo",),
     ),
     Command(
         "fuse",
@@ -110,7 +114,8 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command(
         "train",
-        "train PVSNet on synthetic scenes (anti-noise strategy); resumable from OUTPUT_DIR/last.pt",
+        "train PVSNet on synthetic scenes, optionally mixed with real COLMAP scenes (self-supervised, "
+        "--real_fraction); anti-noise strategy; resumable from OUTPUT_DIR/last.pt",
         "colmap_pvs.train:TrainConfig",
         "colmap_pvs.train:train",
         "colmap_pvs.cli.reports:report_train",
@@ -150,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     groups: dict[str, argparse._SubParsersAction] = {}
     for cmd in COMMANDS:
         help_text = cmd.help if cmd.planned is None else f"{cmd.help} [not built yet: {cmd.planned}]"
+        help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
         group, _, leaf = cmd.name.rpartition(" ")
         if group:  # nested, e.g. "evaluate depth"
             if group not in groups:
@@ -159,7 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
             p = groups[group].add_parser(leaf, help=help_text, description=help_text)
             p.set_defaults(command=cmd.name)
         else:
-            p = sub.add_parser(cmd.name, help=help_text, description=help_text)
+            p = sub.add_parser(cmd.name, help=help_text, description=help_text, aliases=list(cmd.aliases))
+            p.set_defaults(command=cmd.name)
         if cmd.config is not None:
             add_config_arguments(p, _load(cmd.config), required=cmd.required)
             p.add_argument(
@@ -173,6 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
         for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
             p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
                            help=f"same as --{name}")
+        if cmd.name == "stereo":
+            add_colmap_flags(p)
     return parser
 
 
@@ -208,9 +217,15 @@ def main(argv: list[str] | None = None) -> int:
     config_cls = _load(cmd.config)
     function: Callable = _load(cmd.function)
     try:
+        if cmd.name == "stereo":
+            for key, value in translate_colmap_flags(args).items():
+                setattr(args, key, value)
         config = _build_config(config_cls, args)
         result = function(config)
     except ColmapPVSError as exc:
+        sys.stderr.write(f"colmap-pvs {cmd.name}: error: {exc}\n")
+        return 1
+    except OSError as exc:  # read-only folder, disk full, ...: one line naming the file, no traceback
         sys.stderr.write(f"colmap-pvs {cmd.name}: error: {exc}\n")
         return 1
     except KeyboardInterrupt as exc:  # includes training's TrainingInterrupted (state saved)

@@ -15,6 +15,11 @@ def report_stereo(result) -> str:
         f"computed: {len(result.processed)}  already done: {len(result.already_done)}  "
         f"skipped: {len(result.skipped)}  seconds/image: {result.seconds_per_image:.2f}",
     ]
+    if result.adapt_seconds > 0:
+        lines.append(
+            f"test-time adaptation: {result.adapt_seconds:.1f} s "
+            f"({result.adapt_seconds_per_image:.2f} s per reference image)"
+        )
     lines += [f"  skipped {name}: {why}" for name, why in result.skipped.items()]
     return "\n".join(lines)
 

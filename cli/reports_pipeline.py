@@ -58,13 +58,20 @@ def report_reconstruct(result) -> str:
         note = "  (already done)" if stage in result.resumed else ""
         lines.append(f"  {stage:<10} {seconds:8.1f} s{note}")
     lines.append(f"  {'total':<10} {sum(result.stage_seconds.values()):8.1f} s")
-    lines += [
-        f"sparse model: {result.sparse_path}",
-        f"dense workspace: {result.dense_path}",
-        f"fused cloud: {result.fused_path}",
-        f"mesh: {result.mesh_path if result.mesh_path is not None else '(none)'}",
-    ]
     lines += [f"  stereo skipped {name}: {why}" for name, why in result.stereo_skipped.items()]
+    previews = result.previews_path
+    n_previews = len(list(previews.glob("*.depth.png"))) if previews is not None else 0
+    lines += [
+        "where to look:",
+        f"  sparse model:    {result.sparse_path}",
+        f"  dense workspace: {result.dense_path}",
+        f"  previews:        {previews}  ({n_previews} depth maps as PNG, with normals and confidence)"
+        if previews is not None
+        else "  previews:        (none; run with --previews true)",
+        f"  fused cloud:     {result.fused_path if result.fused_path is not None else '(none)'}",
+        f"  mesh:            {result.mesh_path if result.mesh_path is not None else '(none)'}",
+        f"  pycolmap log:    {result.log_path if result.log_path is not None else '(on the terminal)'}",
+    ]
     return "\n".join(lines)
 
 

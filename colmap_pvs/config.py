@@ -15,15 +15,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
+import math
 import os
+import socket
 import tempfile
 import types
 import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
-from .errors import ConfigError
+from .errors import ConfigError, OutputError
 
 C = TypeVar("C")
 
@@ -41,6 +44,19 @@ def parse_bool(text: str | bool) -> bool:
     if low in _FALSE:
         return False
     raise ConfigError(f"expected a boolean (true/false/1/0), got {text!r}")
+
+
+def check_range(
+    name: str, value: float, *, low: float | None = None, high: float | None = None
+) -> None:
+    """Raise :class:`ConfigError` naming ``name`` unless ``low <= value <= high`` (and finite)."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (low is None or value >= low) and (high is None or value <= high)
+    if not ok:
+        bounds = " and ".join(
+            b for b in (f">= {low}" if low is not None else "", f"<= {high}" if high is not None else "") if b
+        )
+        raise ConfigError(f"{name} must be a finite number{' ' + bounds if bounds else ''}, got {value!r}")
 
 
 def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
@@ -99,9 +115,12 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if isinstance(value, bool):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         try:
-            return float(value)
+            number = float(value)
         except (TypeError, ValueError):
             raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if math.isnan(number):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return number
     if tp is str:
         if not isinstance(value, (str, Path)):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
@@ -163,18 +182,59 @@ def current_umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
+def host_tag() -> str:
+    """8 hex digits identifying this host in temporary file names."""
+    return hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def temp_tag() -> str:
+    """``pvs-HOST-PID``: marks our temporary files so that a later run can tell orphans (their process is
+    gone) from files a running process is still writing (:mod:`colmap_pvs.io.cleanup`)."""
+    return f"pvs-{host_tag()}-{os.getpid()}"
+
+
+def write_temp_file(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to a new temporary file beside ``path`` (usual permissions) and return its path.
+
+    The caller renames it into place (``os.replace``) or removes it.
+
+    Raises:
+        OutputError: the folder is not writable or the disk is full (nothing is left behind).
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{temp_tag()}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
+        raise
+    return Path(tmp)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename.
+
+    Raises:
+        OutputError: the folder is not writable or the disk is full (nothing is left behind).
+    """
+    path = Path(path)
+    tmp = write_temp_file(path, data)
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
@@ -201,6 +261,13 @@ def load_config(cls: type[C], path: str | os.PathLike) -> C:
 
 
 # --------------------------------------------------------------------------- CLI flags
+
+
+def _bool_flag(text: str) -> bool:
+    try:
+        return parse_bool(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _field_help(field: dataclasses.Field) -> str:
@@ -237,6 +304,7 @@ def add_config_arguments(
         help_text = _field_help(f)
         if f.name not in required:
             help_text = f"{help_text} (default: {_jsonable(default)})".strip()
+        help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
         kwargs: dict[str, Any] = {"dest": f.name, "help": help_text, "default": argparse.SUPPRESS}
         origin = get_origin(tp)
         if origin is Literal:
@@ -245,9 +313,11 @@ def add_config_arguments(
         elif origin is tuple:
             kwargs["nargs"] = "+"
             kwargs["metavar"] = "V"
-        elif tp is bool:
-            kwargs["type"] = parse_bool
+        elif tp is bool:  # bare `--flag` is true; `--flag false` / `--flag=0` work too
+            kwargs["type"] = _bool_flag
             kwargs["metavar"] = "BOOL"
+            kwargs["nargs"] = "?"
+            kwargs["const"] = True
         elif tp in (int, float, str, Path):
             kwargs["type"] = str if tp is Path else tp
         else:
@@ -270,6 +340,9 @@ def make_temp_dir(parent: str | os.PathLike, prefix: str, suffix: str = ".tmp") 
 
     ``tempfile.mkdtemp`` creates ``0700`` folders; outputs renamed from it would be private.
     """
-    path = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=parent))
+    try:
+        path = Path(tempfile.mkdtemp(prefix=f"{prefix}{temp_tag()}.", suffix=suffix, dir=parent))
+    except OSError as exc:
+        raise OutputError(f"cannot create a folder in {str(parent)!r}: {exc.strerror or exc}") from None
     os.chmod(path, 0o777 & ~current_umask())
     return path

@@ -16,7 +16,8 @@
 4. survives the loss of a worker: a task whose actor died (killed, out of memory, node lost, or over
    ``ray_task_timeout``) goes back to the queue and runs on another actor; a replacement actor is
    started; a reference whose workers died more than ``ray_max_retries`` times stops the run with a
-   :class:`~colmap_pvs.errors.DistributedError`. Temporary files a killed worker left behind are removed;
+   :class:`~colmap_pvs.errors.DistributedError`. Temporary files a killed worker left behind are removed
+   (:func:`colmap_pvs.io.cleanup.remove_orphan_temps`; all of them once every worker is gone);
 5. writes ``stereo/fusion.cfg`` and the resolved config, like the local backend.
 
 A rerun resumes like a local one: finished references come back as ``done`` from the workers.
@@ -40,7 +41,8 @@ from tqdm import tqdm
 
 from . import __version__
 from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, ConfigError, DistributedError, WorkspaceError
+from .errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
+from .io.cleanup import remove_orphan_temps
 from .io.workspace import Workspace, write_fusion_cfg
 from .stereo import CONFIG_FILENAME, StereoConfig, StereoResult
 from .views import reference_sources
@@ -215,18 +217,6 @@ def _import_ray():
     return ray
 
 
-def _check_config(config: StereoConfig) -> None:
-    for name in ("ray_workers", "ray_max_retries"):
-        if getattr(config, name) < 0:
-            raise ConfigError(f"{name} must be >= 0, got {getattr(config, name)}")
-    if config.ray_worker_threads < 1:
-        raise ConfigError(f"ray_worker_threads must be >= 1, got {config.ray_worker_threads}")
-    if config.ray_worker_memory < 0:
-        raise ConfigError(f"ray_worker_memory must be >= 0 (0: none), got {config.ray_worker_memory}")
-    if config.ray_task_timeout < 0:
-        raise ConfigError(f"ray_task_timeout must be >= 0 (0: no limit), got {config.ray_task_timeout}")
-
-
 def worker_config(config: StereoConfig) -> StereoConfig:
     """The config the workers run: absolute paths (workers have their own working folder), the local
     per-reference code path and ``ray_worker_threads`` torch threads."""
@@ -238,20 +228,6 @@ def worker_config(config: StereoConfig) -> StereoConfig:
     if config.checkpoint is not None:
         changes["checkpoint"] = Path(config.checkpoint).expanduser().absolute()
     return replace_config(config, **changes)
-
-
-def remove_stale_temp_files(stereo_dir: Path) -> list[Path]:
-    """Delete the temporary files (``.NAME.*.tmp``, see :func:`colmap_pvs.config.atomic_write_bytes`)
-    that a killed writer left under ``stereo_dir``. Only call it while nothing writes there."""
-    removed = []
-    if stereo_dir.is_dir():
-        for path in stereo_dir.rglob(".*.tmp"):
-            if path.is_file():
-                path.unlink(missing_ok=True)
-                removed.append(path)
-    if removed:
-        logger.info("removed %d temporary file(s) left by killed workers in %s", len(removed), stereo_dir)
-    return removed
 
 
 def _connect(ray, config: StereoConfig) -> bool:
@@ -487,8 +463,13 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
                 skipped[name] = out.reason
     result.sources = {n: s for n, s in plan["sources"].items() if s is not None and n not in result.skipped}
     kind = passes[-1]
-    write_fusion_cfg(ws.fusion_cfg, [n for n in refs if ws.depth_map_path(n, kind).is_file()
-                                     and ws.normal_map_path(n, kind).is_file()])
+    done = [n for n in refs if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
+    if not done:  # as the local backend: an error, and the previous fusion.cfg is kept
+        reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
+        raise WorkspaceError(
+            f"no depth map in {str(ws.stereo_dir)!r}: all {len(refs)} reference(s) were skipped ({reasons})"
+        )
+    write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = wall / len(computed) if computed else 0.0
     result.seconds_per_task = sum(seconds) / len(seconds) if seconds else 0.0
     return result
@@ -502,7 +483,6 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
             more than ``ray_max_retries`` times.
         WorkspaceError, CheckpointError: what a worker raised, e.g. when it cannot read the workspace.
     """
-    _check_config(config)
     ray = _import_ray()
     passes = stereo_passes(config)
     wall = time.perf_counter()
@@ -525,7 +505,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
         extra = {"checkpoint_sha256": plan["checkpoint_sha256"]} if plan["checkpoint_sha256"] else {}
         save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=plan["checkpoint"],
                     model_config=plan["model_config"], **extra)
-        remove_stale_temp_files(ws.stereo_dir)  # from a run whose driver was killed
+        remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
         graph = TaskGraph(refs, passes, plan["sources"], plan["auxiliary"])
         outcomes: dict[Task, object] = {}
@@ -535,7 +515,8 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
         finally:
             bar.close()
             driver.kill_all()
-        remove_stale_temp_files(ws.stereo_dir)
+        # Every worker is gone now: whatever temporary file is left (on any node) is an orphan.
+        remove_orphan_temps(ws.stereo_dir, recursive=True, max_age_s=0.0)
         result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}
         result.workers = len(driver.info)

@@ -33,3 +33,7 @@ class ShapeError(ColmapPVSError, ValueError):
 
 class DistributedError(ColmapPVSError):
     """A scale-out (Ray) failure: Ray missing, no workers, or a reference whose workers kept dying."""
+
+
+class OutputError(ColmapPVSError, OSError):
+    """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""

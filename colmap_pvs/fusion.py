@@ -39,9 +39,7 @@ COLMAP's layout (:mod:`colmap_pvs.io.ply`), both written atomically; COLMAP's
 from __future__ import annotations
 
 import logging
-import os
 import shutil
-import tempfile
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -52,11 +50,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .config import parse_bool, save_config
+from .config import make_temp_dir, parse_bool, save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
+from .io.cleanup import remove_orphan_temps
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
-from .io.ply import read_point_cloud, write_point_cloud, write_visibility
+from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair
 from .io.workspace import (
     Workspace,
     load_workspace,
@@ -213,6 +212,8 @@ class FuseConfig:
             raise ConfigError(f"max_depth_error must be > 0, got {self.max_depth_error}")
         if self.min_consistent_views < 0:
             raise ConfigError(f"min_consistent_views must be >= 0, got {self.min_consistent_views}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.cache_size < 1:
             raise ConfigError(f"cache_size must be >= 1, got {self.cache_size}")
         object.__setattr__(self, "colmap_options", tuple(str(o) for o in self.colmap_options))
@@ -524,41 +525,64 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         counts = np.zeros(0, np.int64)
         vis_idx = np.zeros(0, np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    write_point_cloud(result.output_path, xyz, normals, rgb)
-    write_visibility(result.vis_path, offsets, vis_idx)
+    write_cloud_pair(result.output_path, xyz, normals, rgb, offsets, vis_idx)  # together or not at all
     result.num_points = int(len(xyz))
 
 
 # --------------------------------------------------------------------------- colmap fusion
 
 
+def _map_problem(ws: Workspace, name: str, input_type: str) -> str | None:
+    """Why the maps of ``name`` cannot be fused (COLMAP's fusion crashes on them or misreads them), or
+    ``None``: 0-byte, truncated or non-finite maps, or a normal map of another size than the depth map."""
+    try:
+        depth = read_depth_map(ws.depth_map_path(name, input_type))
+        normals = read_normal_map(ws.normal_map_path(name, input_type))
+    except MapFormatError as exc:
+        return str(exc)
+    if normals.shape[:2] != depth.shape:
+        return (
+            f"normal map of {name!r} is {normals.shape[1]}x{normals.shape[0]} but its depth map is "
+            f"{depth.shape[1]}x{depth.shape[0]}"
+        )
+    if not (np.isfinite(depth).all() and np.isfinite(normals).all()):
+        return f"the {input_type} maps of {name!r} hold non-finite values"
+    return None
+
+
 def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: FuseResult) -> None:
+    """COLMAP's fusion on a view of the workspace (symbolic links) whose ``fusion.cfg`` lists ``names``:
+    only the maps that were checked are fused, and the user's ``stereo/fusion.cfg`` is never touched."""
     import pycolmap
 
     options = pycolmap.StereoFusionOptions()
     for key, value in {**COLMAP_DEFAULTS, **parse_colmap_options(config.colmap_options)}.items():
         setattr(options, key, value)
-    if ws.sparse_dir != ws.root / "sparse":
-        raise WorkspaceError(
-            f"COLMAP's stereo_fusion reads the model only from {str(ws.root / 'sparse')!r}, but it is in "
-            f"{str(ws.sparse_dir)!r}; move it there or use --method pvs"
-        )
-    if not ws.fusion_cfg.is_file():  # COLMAP fuses exactly the images listed there
-        write_fusion_cfg(ws.fusion_cfg, names)
     out = result.output_path
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = make_temp_dir(out.parent, prefix=f".{out.name}.")
     try:
+        view = tmp / "workspace"
+        (view / "stereo").mkdir(parents=True)
+        (view / "images").symlink_to(ws.images_dir.resolve(), target_is_directory=True)
+        (view / "sparse").symlink_to(ws.sparse_dir.resolve(), target_is_directory=True)
+        for folder in (ws.depth_maps_dir, ws.normal_maps_dir):
+            (view / "stereo" / folder.name).symlink_to(folder.resolve(), target_is_directory=True)
+        write_fusion_cfg(view / "stereo" / "fusion.cfg", names)
         tmp_ply = tmp / out.name
-        pycolmap.stereo_fusion(
-            str(tmp_ply), str(ws.root), input_type=config.input_type, options=options, output_type="PLY"
-        )
-        if not tmp_ply.is_file():
+        try:
+            pycolmap.stereo_fusion(
+                str(tmp_ply), str(view), input_type=config.input_type, options=options, output_type="PLY"
+            )
+        except RuntimeError as exc:
+            first = str(exc).strip().splitlines()
+            raise WorkspaceError(
+                f"COLMAP's stereo_fusion failed on {str(ws.root)!r}: {first[-1] if first else exc}"
+            ) from None
+        vis_tmp = vis_path_of(tmp_ply)
+        if not tmp_ply.is_file() or not vis_tmp.is_file():
             raise WorkspaceError(f"COLMAP's stereo_fusion wrote no point cloud for {str(ws.root)!r}")
-        vis_tmp = Path(str(tmp_ply) + ".vis")
-        if vis_tmp.is_file():
-            os.replace(vis_tmp, result.vis_path)
-        os.replace(tmp_ply, out)
+        commit_cloud_pair(tmp_ply, vis_tmp, out)  # together or not at all
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     result.num_points = len(read_point_cloud(out))
@@ -579,6 +603,7 @@ def fuse(config: FuseConfig) -> FuseResult:
     start = time.perf_counter()
     ws, model = load_workspace(config.workspace_path)
     out = Path(config.output_path) if config.output_path is not None else ws.root / DEFAULT_OUTPUT_NAME
+    remove_orphan_temps(out.parent)  # what a killed run left behind
     result = FuseResult(output_path=out, vis_path=Path(str(out) + ".vis"), method=config.method)
     all_names = [model.images[i].name for i in sorted(model.images)]
     if ws.fusion_cfg.is_file():
@@ -606,6 +631,15 @@ def fuse(config: FuseConfig) -> FuseResult:
             f"no {config.input_type} depth and normal maps to fuse in {str(ws.stereo_dir)!r}; "
             "run `colmap-pvs stereo`"
         )
+    if config.method == "colmap":  # COLMAP's fusion crashes on, or silently misreads, broken maps
+        for n in list(names):
+            problem = _map_problem(ws, n, config.input_type)
+            if problem is not None:
+                names.remove(n)
+                result.skipped[n] = problem
+                logger.warning("fusion: skipping %s: %s", n, problem)
+        if not names:
+            raise WorkspaceError(f"no usable {config.input_type} maps to fuse in {str(ws.stereo_dir)!r}")
     logger.info("fusion (%s): %d images from %s", config.method, len(names), ws.root)
     if config.method == "colmap":
         _fuse_colmap(config, ws, names, result)

@@ -13,26 +13,51 @@ run resumes where it stopped::
 
 With ``input_path`` (an existing sparse model of ``image_path``) the first three stages are
 skipped. Markers live in ``WORKSPACE/.colmap_pvs/``; outputs are written atomically by each step.
+
+Provenance: each finished stage's marker records the settings (and the photos and checkpoint content)
+it was made with (:data:`STAGE_SETTINGS`). A rerun whose settings differ for a finished stage is
+refused with a message naming the setting, both values and the stages it affects; with
+``overwrite`` that stage and the ones after it are recomputed (with no setting changed, ``overwrite``
+recomputes every stage). pycolmap's log goes to ``WORKSPACE/logs/`` (unless the ``colmap_pvs``
+logger is at DEBUG) and every SfM stage has a progress bar.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
 import logging
 import os
 import shutil
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import atomic_write_bytes, make_temp_dir, save_config
+from .config import atomic_write_bytes, config_to_dict, make_temp_dir, save_config
 from .errors import ConfigError, WorkspaceError
+from .io.cleanup import remove_orphan_temps
+from .io.images import check_image_file
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["ReconstructConfig", "ReconstructResult", "reconstruct", "STAGES"]
 
 STAGES = ("features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh")
+#: The settings each stage's output depends on ("photos": names and sizes of the photos; "model": the
+#: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so a moved
+#: copy of the same weights is the same checkpoint and new weights at the same path are not).
+STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
+    "features": ("photos", "camera_model", "single_camera", "max_num_features", "sift_max_image_size"),
+    "matching": ("matcher", "exhaustive_max_images"),
+    "mapping": (),
+    "undistort": ("photos", "input_path", "undistort_max_image_size"),
+    "stereo": ("max_image_size", "num_views", "checkpoint_sha256"),  # the weights, wherever they are
+    "fusion": ("fusion_method",),
+    "mesh": ("mesh", "mesh_depth"),
+}
 _IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm"}
 
 
@@ -72,9 +97,20 @@ class ReconstructConfig:
     ray_workers: int = field(default=0, metadata={"help": "stereo: Ray workers; 0: fill the CPUs"})
     ray_worker_threads: int = field(default=1, metadata={"help": "stereo: torch threads per Ray worker"})
     fusion_method: Literal["pvs", "colmap"] = field(default="pvs", metadata={"help": "fusion method"})
+    previews: bool = field(
+        default=True,
+        metadata={"help": "stereo: PNG previews of depth, normals, confidence (dense/stereo/previews)"},
+    )
     mesh: bool = field(default=True, metadata={"help": "build a Poisson mesh of the fused cloud"})
     mesh_depth: int = field(default=9, metadata={"help": "Poisson octree depth"})
     num_threads: int = field(default=-1, metadata={"help": "CPU threads for SfM and meshing; -1 = all"})
+    overwrite: bool = field(
+        default=False,
+        metadata={
+            "help": "recompute instead of resuming: the stages whose settings changed and those after them, "
+            "or every stage when no setting changed"
+        },
+    )
     stop_after: Literal["features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh"] | None = (
         field(
             default=None,
@@ -89,6 +125,12 @@ class ReconstructConfig:
             raise ConfigError(f"num_views must be >= 2, got {self.num_views}")
         if self.exhaustive_max_images < 2:
             raise ConfigError(f"exhaustive_max_images must be >= 2, got {self.exhaustive_max_images}")
+        if self.num_threads == 0 or self.num_threads < -1:
+            raise ConfigError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        if not 1 <= self.mesh_depth <= 16:
+            raise ConfigError(f"mesh_depth must be in [1, 16], got {self.mesh_depth}")
+        if 0 < self.max_image_size < 16:
+            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
 
 @dataclass
@@ -102,6 +144,8 @@ class ReconstructResult:
         resumed: stages whose finished output was found and reused.
         sparse_path, dense_path, fused_path, mesh_path: outputs (``mesh_path`` ``None`` without mesh).
         stereo_skipped: images stereo skipped, with the reason.
+        previews_path: the folder of depth / normal / confidence PNGs (``None`` without previews).
+        log_path: the folder of pycolmap's log (``None`` when it went to the terminal).
     """
 
     workspace_path: Path
@@ -116,6 +160,8 @@ class ReconstructResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     resumed: list[str] = field(default_factory=list)
     stereo_skipped: dict[str, str] = field(default_factory=dict)
+    previews_path: Path | None = None
+    log_path: Path | None = None
 
 
 def _list_images(folder: Path) -> list[str]:
@@ -127,19 +173,34 @@ def _list_images(folder: Path) -> list[str]:
 
 
 class _Progress:
-    """Per-stage timing, logging and done-markers."""
+    """Per-stage timing, logging, done-markers (with the settings each stage was made with)."""
 
     def __init__(self, root: Path, result: ReconstructResult) -> None:
         self.markers = root / ".colmap_pvs"
         self.result = result
+        self.settings: dict[str, dict] = {}  # stage -> the settings its output is made with
+        self.overwrite: set[str] = set()  # stages whose old output must not be resumed
         self._t = 0.0
         self._stage = ""
 
     def done(self, stage: str) -> bool:
-        return (self.markers / f"{stage}.done").is_file()
+        return stage not in self.overwrite and (self.markers / f"{stage}.done").is_file()
 
     def mark(self, stage: str) -> None:
-        atomic_write_bytes(self.markers / f"{stage}.done", b"done\n")
+        payload = {"stage": stage, "settings": self.settings.get(stage, {})}
+        atomic_write_bytes(self.markers / f"{stage}.done", (json.dumps(payload, indent=1) + "\n").encode())
+
+    def unmark(self, *stages: str) -> None:
+        for stage in stages:
+            (self.markers / f"{stage}.done").unlink(missing_ok=True)
+
+    def recorded(self, stage: str) -> dict | None:
+        """The settings a finished stage recorded; ``None`` when unknown (no marker, or an old one)."""
+        try:
+            payload = json.loads((self.markers / f"{stage}.done").read_text())
+        except (OSError, ValueError):
+            return None
+        return payload.get("settings") if isinstance(payload, dict) else None
 
     def start(self, stage: str) -> None:
         self._stage, self._t = stage, time.perf_counter()
@@ -163,16 +224,117 @@ def _model_dir_ok(path: Path) -> bool:
     )
 
 
+# --------------------------------------------------------------------------- provenance
+
+
+def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update(f"{name}\0{(folder / name).stat().st_size}\n".encode())
+    return {"count": len(names), "sha256": digest.hexdigest()}
+
+
+def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
+    from .evaluate import file_sha256
+
+    values = {
+        "photos": _photos_fingerprint(Path(config.image_path), names),
+        "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
+        "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
+        **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "checkpoint")},
+    }
+    return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
+
+
+def _describe_change(key: str, old, new) -> str:
+    if key == "photos":
+        return f"the photos ({old.get('count')} -> {new.get('count')} files; names or sizes changed)"
+    if key == "checkpoint_sha256":
+        return f"the checkpoint's content (sha256 {str(old)[:12]} -> {str(new)[:12]})"
+    return f"{key} {old} -> {new}"
+
+
+def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) -> None:
+    """Refuse (or, with ``overwrite``, schedule the recomputation of) stages made with other settings."""
+    changes: list[tuple[str, str]] = []  # (stage, description)
+    for stage in STAGES:
+        recorded = prog.recorded(stage)
+        if recorded is None:
+            continue
+        for key, new in prog.settings[stage].items():
+            if key in recorded and recorded[key] != new:
+                changes.append((stage, _describe_change(key, recorded[key], new)))
+    if changes:
+        first = min(STAGES.index(stage) for stage, _ in changes)
+        redo = STAGES[first:]
+        listed = "; ".join(f"{what} ({stage})" for stage, what in changes)
+        if not config.overwrite:
+            raise ConfigError(
+                f"workspace {str(root)!r} was made with other settings: {listed}; pass --overwrite to "
+                f"recompute {', '.join(redo)}, or use another --workspace_path"
+            )
+        logger.warning("reconstruct: settings changed (%s): recomputing %s", listed, ", ".join(redo))
+    elif config.overwrite:
+        redo = STAGES[3:] if config.input_path is not None else STAGES
+        logger.info("reconstruct: --overwrite: recomputing %s", ", ".join(redo))
+    else:
+        return
+    prog.overwrite = set(redo)
+    prog.unmark(*redo)
+
+
+def _check_photos(folder: Path, names: list[str]) -> None:
+    problems = []
+    for name in names:
+        try:
+            check_image_file(folder / name)
+        except WorkspaceError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise WorkspaceError(
+            f"{len(problems)} of {len(names)} photos in {str(folder)!r} cannot be used (remove or replace "
+            f"them): {'; '.join(problems[:5])}{' ...' if len(problems) > 5 else ''}"
+        )
+
+
+# --------------------------------------------------------------------------- SfM
+
+
+def _sequential_pairs(n: int, overlap: int = 10, quadratic: bool = True) -> int:
+    """Number of image pairs COLMAP's sequential matcher matches (no loop detection)."""
+    pairs = set()
+    for i in range(n):
+        for k in range(1, overlap + 1):
+            if i + k < n:
+                pairs.add((i, i + k))
+        if quadratic:
+            for k in range(overlap):
+                if i + (1 << k) < n:
+                    pairs.add((i, i + (1 << k)))
+    return len(pairs)
+
+
+def _clear_matches(db: Path) -> None:
+    """Forget the matches of a database (COLMAP's matchers skip pairs that are already matched)."""
+    with contextlib.closing(sqlite3.connect(str(db))) as con:
+        con.execute("DELETE FROM matches")
+        con.execute("DELETE FROM two_view_geometries")
+        con.commit()
+
+
 def _run_sfm(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, stop_after: str | None
 ) -> Path | None:
     """Features, matching and mapping; ``None`` when ``stop_after`` stopped it before a model exists."""
     import pycolmap
+    from tqdm import tqdm
+
+    from .io.pycolmap_output import DatabaseProgress
 
     image_dir = Path(config.image_path)
     db = root / "database.db"
     sparse = root / "sparse" / "0"
-    if _model_dir_ok(sparse):
+    if _model_dir_ok(sparse) and not prog.overwrite & {"features", "matching", "mapping"}:
         for stage in ("features", "matching", "mapping"):
             prog.skip(stage, f"model found in {sparse}")
         return sparse
@@ -183,22 +345,24 @@ def _run_sfm(
         prog.start("features")
         for p in (db, Path(str(db) + "-wal"), Path(str(db) + "-shm")):
             p.unlink(missing_ok=True)
-        (prog.markers / "matching.done").unlink(missing_ok=True)
+        prog.unmark("matching")
+        prog.overwrite.discard("matching")  # a new database has no matches to forget
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.num_threads = config.num_threads
         extraction.max_image_size = config.sift_max_image_size
         extraction.sift.max_num_features = config.max_num_features
         reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
         mode = pycolmap.CameraMode.SINGLE if config.single_camera else pycolmap.CameraMode.AUTO
-        pycolmap.extract_features(
-            str(db),
-            str(image_dir),
-            image_names=names,
-            camera_mode=mode,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
+        with DatabaseProgress(db, "keypoints", len(names), "features", "image"):
+            pycolmap.extract_features(
+                str(db),
+                str(image_dir),
+                image_names=names,
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
         prog.mark("features")
         prog.stop()
     if stop_after == "features":
@@ -208,16 +372,21 @@ def _run_sfm(
         prog.skip("matching", "already matched")
     else:
         prog.start("matching")
+        if "matching" in prog.overwrite:
+            _clear_matches(db)
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = config.num_threads
         use = config.matcher
         if use == "auto":
             use = "exhaustive" if len(names) <= config.exhaustive_max_images else "sequential"
         logger.info("reconstruct: %s matching of %d images", use, len(names))
-        if use == "exhaustive":
-            pycolmap.match_exhaustive(str(db), matching_options=matching, device=pycolmap.Device.cpu)
-        else:
-            pycolmap.match_sequential(str(db), matching_options=matching, device=pycolmap.Device.cpu)
+        n = len(names)
+        total = n * (n - 1) // 2 if use == "exhaustive" else _sequential_pairs(n)
+        with DatabaseProgress(db, "matches", total, "matching", "pair"):
+            if use == "exhaustive":
+                pycolmap.match_exhaustive(str(db), matching_options=matching, device=pycolmap.Device.cpu)
+            else:
+                pycolmap.match_sequential(str(db), matching_options=matching, device=pycolmap.Device.cpu)
         prog.mark("matching")
         prog.stop()
     if stop_after == "matching":
@@ -227,8 +396,19 @@ def _run_sfm(
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = config.num_threads
     tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=root)
+    bar = tqdm(total=len(names), desc="mapping", unit="image")
+
+    def registered() -> None:
+        if bar.n < bar.total:
+            bar.update(1)
+
     try:
-        models = pycolmap.incremental_mapping(str(db), str(image_dir), str(tmp), options=options)
+        try:
+            models = pycolmap.incremental_mapping(
+                str(db), str(image_dir), str(tmp), options=options, next_image_callback=registered
+            )
+        finally:
+            bar.close()
         if not models:
             raise WorkspaceError(
                 f"SfM registered no images of {str(image_dir)!r}: too few matches "
@@ -251,6 +431,7 @@ def _run_sfm(
         os.replace(out, sparse)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    prog.mark("mapping")
     prog.stop()
     return sparse
 
@@ -259,16 +440,12 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     """Run the whole pipeline (see the module docstring); resumable.
 
     Raises:
-        WorkspaceError: no images, SfM failure, or a failure of a later step (named by that step).
+        WorkspaceError: no images, unusable photos (empty, truncated), SfM failure, or a failure of a
+            later step (named by that step).
+        ConfigError: a finished stage was made with other settings and ``overwrite`` is not set.
         CheckpointError: no checkpoint given and none shipped.
     """
-    import pycolmap
-
-    from .fusion import FuseConfig, fuse
-    from .io.ply import read_point_cloud
-    from .io.workspace import UndistortConfig, detect_workspace, undistort
-    from .mesh import DEFAULT_MESH_NAME, MeshConfig, mesh
-    from .stereo import DEFAULT_CHECKPOINT, StereoConfig, run_stereo
+    from .stereo import DEFAULT_CHECKPOINT
 
     image_dir = Path(config.image_path)
     root = Path(config.workspace_path)
@@ -286,12 +463,38 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
         raise CheckpointError(
             f"no trained default checkpoint is shipped at {str(DEFAULT_CHECKPOINT)!r}; pass --checkpoint PATH"
         )
-    root.mkdir(parents=True, exist_ok=True)
-    save_config(config, root / "colmap_pvs_reconstruct.json")
+    _check_photos(image_dir, names)
     result = ReconstructResult(workspace_path=root, num_images=len(names))
     prog = _Progress(root, result)
-    total = time.perf_counter()
+    checkpoint = Path(config.checkpoint) if config.checkpoint is not None else Path(DEFAULT_CHECKPOINT)
+    prog.settings = _current_settings(config, names, checkpoint)
+    _check_provenance(config, prog, root)  # before anything is written
+    root.mkdir(parents=True, exist_ok=True)
+    remove_orphan_temps(root)
+    remove_orphan_temps(prog.markers)
+    save_config(config, root / "colmap_pvs_reconstruct.json")
+    from .io.pycolmap_output import pycolmap_log_to_file
 
+    quiet = not logging.getLogger("colmap_pvs").isEnabledFor(logging.DEBUG)
+    with pycolmap_log_to_file(root / "logs", enabled=quiet) as log_dir:
+        result.log_path = log_dir
+        _reconstruct(config, root, names, prog, result)
+    return result
+
+
+def _reconstruct(
+    config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, result: ReconstructResult
+) -> None:
+    import pycolmap
+
+    from .fusion import FuseConfig, fuse
+    from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
+    from .io.workspace import UndistortConfig, detect_workspace, undistort
+    from .mesh import DEFAULT_MESH_NAME, MeshConfig, mesh
+    from .stereo import StereoConfig, run_stereo
+
+    image_dir = Path(config.image_path)
+    total = time.perf_counter()
     if config.input_path is not None:
         sparse = Path(config.input_path)
         if not _model_dir_ok(sparse):
@@ -303,7 +506,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     else:
         sparse = _run_sfm(config, root, names, prog, config.stop_after)
         if sparse is None:
-            return result
+            return
         if "mapping" not in result.resumed and (root / "dense").exists():
             logger.info("reconstruct: new sparse model; removing the stale dense workspace")
             shutil.rmtree(root / "dense")
@@ -320,20 +523,25 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     if result.num_registered < len(names):
         logger.warning("reconstruct: %d image(s) were not registered", len(names) - result.num_registered)
     if config.stop_after == "mapping":
-        return result
+        return
 
     dense = root / "dense"
     fused = dense / "fused.ply"
     meshed = dense / DEFAULT_MESH_NAME
     result.dense_path = dense
-    try:
-        detect_workspace(dense, create_stereo_dirs=False)
+    have_dense = "undistort" not in prog.overwrite
+    if have_dense:
+        try:
+            detect_workspace(dense, create_stereo_dirs=False)
+        except WorkspaceError:
+            have_dense = False
+    if have_dense:
         prog.skip("undistort", f"dense workspace found in {dense}")
-    except WorkspaceError:
+    else:
         prog.start("undistort")
         if dense.exists():
             shutil.rmtree(dense)
-        (prog.markers / "stereo.done").unlink(missing_ok=True)
+        prog.unmark("stereo", "fusion", "mesh")
         undistort(
             UndistortConfig(
                 image_path=image_dir,
@@ -342,22 +550,26 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
                 max_image_size=config.undistort_max_image_size,
             )
         )
+        prog.mark("undistort")
         prog.stop()
     if config.stop_after == "undistort":
-        return result
+        return
 
     if prog.done("stereo"):
         prog.skip("stereo", "depth maps already computed")
     else:
         prog.start("stereo")
-        for stale in (fused, Path(str(fused) + ".vis"), meshed):
+        for stale in (fused, vis_path_of(fused), meshed):
             stale.unlink(missing_ok=True)
+        prog.unmark("fusion", "mesh")
         st = run_stereo(
             StereoConfig(
                 workspace_path=dense,
                 num_views=config.num_views,
                 max_image_size=config.max_image_size,
                 checkpoint=config.checkpoint,
+                previews=config.previews,
+                overwrite="stereo" in prog.overwrite,
                 backend=config.backend,
                 ray_address=config.ray_address,
                 ray_workers=config.ray_workers,
@@ -367,23 +579,27 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
         result.stereo_skipped = dict(st.skipped)
         prog.mark("stereo")
         prog.stop()
+    previews = dense / "stereo" / "previews"
+    result.previews_path = previews if previews.is_dir() else None
     if config.stop_after == "stereo":
-        return result
+        return
 
-    if fused.is_file() and Path(str(fused) + ".vis").is_file():
+    if "fusion" not in prog.overwrite and cloud_pair_is_complete(fused):
         prog.skip("fusion", f"{fused} exists")
     else:
         prog.start("fusion")
         meshed.unlink(missing_ok=True)
+        prog.unmark("mesh")
         fuse(FuseConfig(workspace_path=dense, output_path=fused, method=config.fusion_method))
+        prog.mark("fusion")
         prog.stop()
     result.fused_path = fused
     result.num_fused_points = len(read_point_cloud(fused))
     if config.stop_after == "fusion":
-        return result
+        return
 
     if config.mesh:
-        if meshed.is_file():
+        if meshed.is_file() and "mesh" not in prog.overwrite:
             prog.skip("mesh", f"{meshed} exists")
         elif result.num_fused_points < 4:
             logger.warning("reconstruct: the fused cloud has %d points; no mesh", result.num_fused_points)
@@ -397,6 +613,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
                     num_threads=config.num_threads,
                 )
             )
+            prog.mark("mesh")
             prog.stop()
         result.mesh_path = meshed if meshed.is_file() else None
     logger.info(
@@ -407,4 +624,3 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
         result.num_points3D,
         result.num_fused_points,
     )
-    return result

@@ -23,8 +23,9 @@ import torch
 from tqdm import tqdm
 
 from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, WorkspaceError
+from .errors import CheckpointError, ColmapPVSError, ConfigError, WorkspaceError
 from .geometry import sparse_depth_map, to_homogeneous
+from .io.cleanup import remove_orphan_temps
 from .io.images import load_image, resize_image
 from .io.maps import (
     fusion_intrinsics,
@@ -110,6 +111,26 @@ class StereoConfig:
         default=0.0, metadata={"help": "ray: seconds after which a reference's worker is killed and the "
                                "reference retried; 0: no limit"}
     )
+    # issue 11: the field COLMAP's --PatchMatchStereo.geom_consistency maps to (its pass: issue 13).
+    geom_consistency: bool = field(
+        default=True,
+        metadata={"help": "geometric-consistency pass (COLMAP's PatchMatchStereo.geom_consistency)"},
+    )
+
+    def __post_init__(self) -> None:  # issue 11: bad values are refused where they enter
+        from .config import check_range
+
+        check_range("num_views", self.num_views, low=2)
+        check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("threads", self.threads, low=0)
+        check_range("min_sources", self.min_sources, low=1)
+        check_range("adapt_steps", self.adapt_steps, low=0)
+        check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
+        for name, low in (("ray_workers", 0), ("ray_worker_threads", 1), ("ray_worker_memory", 0.0),
+                          ("ray_max_retries", 0), ("ray_task_timeout", 0.0)):
+            check_range(name, getattr(self, name), low=low)
+        if 0 < self.max_image_size < 16:
+            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
 
 @dataclass
@@ -339,6 +360,7 @@ class StereoContext:
 def prepare_stereo(config: StereoConfig) -> StereoContext:
     """Load the workspace, the sparse model, the view selection and the checkpoint (once)."""
     ws, model_sparse = load_workspace(config.workspace_path)
+    remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
@@ -371,11 +393,16 @@ def process_reference(
 ) -> RefOutcome:
     """Compute (if not current) and atomically write one reference's maps for one pass.
 
-    This single-pass version has the photometric pass only (it writes the geometric maps as copies).
+    This single-pass version computes in the photometric pass and writes the geometric maps as its
+    copies; its geometric pass only confirms they exist.
     """
-    if stage != "photometric":
-        raise ValueError(f"stage {stage!r}: this stereo step has a photometric pass only")
     config, ws, model_sparse = ctx.config, ctx.workspace, ctx.sparse
+    if stage == "geometric":
+        if _is_done(ws, name):
+            return RefOutcome(name, stage, "done")
+        return RefOutcome(name, stage, "skipped", "no photometric maps")
+    if stage != "photometric":
+        raise ConfigError(f"stage must be 'photometric' or 'geometric', got {stage!r}")
     if not config.overwrite and _is_done(ws, name):
         return RefOutcome(name, stage, "done")
     entry = ctx.selection.references.get(name)
@@ -391,6 +418,7 @@ def process_reference(
     h, w = images.shape[-2:]
     ref = model_sparse.image_by_name(name)
     sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, ctx.id_order)
+    sparse[(sparse < entry.depth_range[0]) | (sparse > entry.depth_range[1])] = 0.0  # issue 11: outliers
     loaded = time.perf_counter()
     try:
         depth, conf, vis = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse, ctx.device)
@@ -459,6 +487,11 @@ def run_stereo(config: StereoConfig) -> StereoResult:
             times.append(outcome.seconds)
             bar.set_postfix(s_per_image=f"{np.mean(times):.2f}")
     done = [n for n in refs if _is_done(ws, n)]
+    if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
+        reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
+        raise WorkspaceError(
+            f"no depth map in {str(ws.stereo_dir)!r}: all {len(refs)} reference(s) were skipped ({reasons})"
+        )
     write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = float(np.mean(times)) if times else 0.0
     logger.info(

@@ -115,6 +115,25 @@ class ViewSelectionConfig:
         default=1e-3,
         metadata={"help": "guard in (0, 1): the minimum depth is at least min_depth_ratio * maximum depth"},
     )
+    depth_outlier_sigmas: float = field(
+        default=3.0,
+        metadata={
+            "help": "points whose log depth is more than this many robust sigmas (1.4826 MAD) and more than "
+            "depth_outlier_min_factor away from the median depth are outliers, ignored for the range; "
+            "0 disables"
+        },
+    )
+    depth_outlier_min_factor: float = field(
+        default=3.0,
+        metadata={"help": "points within [median / f, median * f] are never outliers (f > 1)"},
+    )
+    depth_outlier_max_fraction: float = field(
+        default=0.1,
+        metadata={
+            "help": "if more than this fraction of the points would be outliers they are scene structure "
+            "(a background), and all points are kept"
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.num_views < 2:
@@ -151,6 +170,14 @@ class ViewSelectionConfig:
             raise ConfigError(f"depth_margin must be in [0, 1), got {self.depth_margin}")
         if not 0.0 < self.min_depth_ratio < 1.0:
             raise ConfigError(f"min_depth_ratio must be in (0, 1), got {self.min_depth_ratio}")
+        if not (np.isfinite(self.depth_outlier_sigmas) and self.depth_outlier_sigmas >= 0):
+            raise ConfigError(f"depth_outlier_sigmas must be >= 0, got {self.depth_outlier_sigmas}")
+        if not (np.isfinite(self.depth_outlier_min_factor) and self.depth_outlier_min_factor > 1):
+            raise ConfigError(f"depth_outlier_min_factor must be > 1, got {self.depth_outlier_min_factor}")
+        if not 0.0 <= self.depth_outlier_max_fraction < 0.5:
+            raise ConfigError(
+                f"depth_outlier_max_fraction must be in [0, 0.5), got {self.depth_outlier_max_fraction}"
+            )
 
 
 # --------------------------------------------------------------------------- scores
@@ -337,6 +364,39 @@ def _observed_depths(model: SparseModel, image: Image, order: np.ndarray | None 
     return z[np.isfinite(z) & (z > 0)]
 
 
+def _outlier_mask(depths: np.ndarray, config: ViewSelectionConfig) -> np.ndarray:
+    """``[M]`` bool, True for far outliers among positive depths ``[M]`` (see :func:`compute_depth_range`)."""
+    none = np.zeros(depths.shape, dtype=bool)
+    if config.depth_outlier_sigmas <= 0 or depths.shape[0] < 4:
+        return none
+    log_z = np.log(depths)
+    median = np.median(log_z)
+    sigma = 1.4826 * np.median(np.abs(log_z - median))
+    half_width = max(config.depth_outlier_sigmas * sigma, np.log(config.depth_outlier_min_factor))
+    outliers = np.abs(log_z - median) > half_width
+    if outliers.mean() > config.depth_outlier_max_fraction:
+        return none
+    return outliers
+
+
+def _robust_depth_range(
+    depths: np.ndarray, config: ViewSelectionConfig, name: str
+) -> tuple[tuple[float, float], str | None]:
+    """Depth range of one image and, when outliers were ignored, a note naming how many."""
+    outliers = _outlier_mask(depths, config)
+    note = None
+    if outliers.any():
+        kept = depths[~outliers]
+        note = (
+            f"{name}: {int(outliers.sum())} of {depths.shape[0]} sparse points are depth outliers "
+            f"(outside {kept.min():.4g}..{kept.max():.4g}, median {np.median(depths):.4g}; farthest "
+            f"{depths[outliers].max():.4g}, nearest {depths[outliers].min():.4g}), "
+            "ignored for the depth range"
+        )
+        depths = kept
+    return _depth_range_from_depths(depths, config), note
+
+
 def _depth_range_from_depths(depths: np.ndarray, config: ViewSelectionConfig) -> tuple[float, float]:
     lo, hi = np.percentile(depths, config.depth_percentiles)
     dmax = float(hi) * (1.0 + config.depth_margin)
@@ -355,8 +415,13 @@ def compute_depth_range(
 ) -> tuple[float, float] | None:
     """Robust depth range ``(dmin, dmax)`` of ``image`` from the sparse points it observes.
 
-    With ``lo, hi`` the ``config.depth_percentiles`` of the (positive, camera-frame z)
-    depths of the observed points and ``m = config.depth_margin``::
+    First, far outliers are set aside (a warning names how many): with ``z`` the positive
+    camera-frame depths of the observed points, ``med`` the median of ``log z`` and
+    ``sigma = 1.4826 * median(|log z - med|)``, a point is an outlier when
+    ``|log z - med| > max(depth_outlier_sigmas * sigma, log(depth_outlier_min_factor))`` -- unless
+    more than ``depth_outlier_max_fraction`` of the points are, then none is (a background is
+    structure, not noise). With ``lo, hi`` the ``config.depth_percentiles`` of the remaining depths
+    and ``m = config.depth_margin``::
 
         dmax = hi * (1 + m)
         dmin = max(lo * (1 - m), min_depth_ratio * dmax)      # always > 0
@@ -374,7 +439,10 @@ def compute_depth_range(
             config.min_points,
         )
         return None
-    return _depth_range_from_depths(depths, config)
+    depth_range, note = _robust_depth_range(depths, config, repr(image.name))
+    if note is not None:
+        logger.warning("image %s", note)
+    return depth_range
 
 
 # --------------------------------------------------------------------------- ranking
@@ -554,6 +622,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
     n_sources = config.num_views - 1
     references: dict[str, ReferenceViews] = {}
     skipped: list[SkippedImage] = []
+    outlier_notes: list[str] = []
     for k, image_id in enumerate(stats.image_ids):
         image = model.images[int(image_id)]
         depths = _observed_depths(model, image, order)
@@ -582,15 +651,24 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
             )
         ranked_names = tuple(names[j] for j in ranked)
         ranked_scores = row[ranked]
+        depth_range, note = _robust_depth_range(depths, config, repr(image.name))
+        if note is not None:
+            outlier_notes.append(note)
+            logger.info("image %s", note)
         references[image.name] = ReferenceViews(
             name=image.name,
             image_id=int(image_id),
             num_points=int(depths.shape[0]),
-            depth_range=_depth_range_from_depths(depths, config),
+            depth_range=depth_range,
             source_names=ranked_names[:n_sources],
             source_scores=tuple(float(s) for s in ranked_scores[:n_sources]),
             ranked_names=ranked_names,
             ranked_scores=ranked_scores,
+        )
+    if outlier_notes:
+        logger.warning(
+            "depth ranges of %d image(s) ignore far outlier sparse points (details at INFO), e.g. %s",
+            len(outlier_notes), outlier_notes[0],
         )
     return ViewSelection(
         names=names,

@@ -51,7 +51,8 @@ def test_adaptation_writes_weights_and_reuses_or_redoes_them(workspace, base):
     changed = adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=5e-4, **FAST),
                                progress=False)
     assert not changed.reused
-    assert json.loads((stereo_dir / "adapt" / "adapted.json").read_text())["fingerprint"]["settings"]["lr"] == 5e-4
+    meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
+    assert meta["fingerprint"]["settings"]["lr"] == 5e-4
 
 
 def test_adaptation_resumes_an_interrupted_run(workspace, base):

@@ -25,7 +25,7 @@ import pytest
 from colmap_pvs.cli.main import main
 from conftest import make_tiny_checkpoint
 
-from colmap_pvs.distributed import TaskGraph, remove_stale_temp_files, stereo_passes
+from colmap_pvs.distributed import TaskGraph, stereo_passes
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.reconstruct import ReconstructConfig
@@ -73,17 +73,6 @@ def test_task_graph_auxiliary_images_get_the_first_pass_only():
     graph.finish(("a", "geometric"))
     graph.finish(("b", "geometric"))
     assert graph.remaining == 0
-
-
-def test_remove_stale_temp_files(tmp_path):
-    stereo = tmp_path / "stereo"
-    (stereo / "depth_maps").mkdir(parents=True)
-    keep = stereo / "depth_maps" / "a.png.geometric.bin"
-    stale = stereo / "depth_maps" / ".a.png.geometric.bin.k2j3.tmp"
-    keep.write_bytes(b"1")
-    stale.write_bytes(b"half")
-    assert remove_stale_temp_files(stereo) == [stale]
-    assert keep.is_file() and not stale.exists()
 
 
 def test_ray_flags_in_stereo_and_reconstruct():

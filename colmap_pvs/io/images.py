@@ -18,22 +18,68 @@ from ..errors import ShapeError, WorkspaceError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["load_image", "read_image_size", "resize_image"]
+__all__ = ["check_image_file", "load_image", "read_image_size", "resize_image"]
 
 _READ_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"
+_JPEG_START, _JPEG_END = b"\xff\xd8", b"\xff\xd9"
+
+
+def _check_image_bytes(data: bytes, path: Path) -> None:
+    """Refuse empty files and PNG / JPEG files without their end marker (cut-off downloads, full disks).
+
+    Decoders (libpng, libjpeg, COLMAP's FreeImage) may return a truncated image with its missing part
+    grey or black instead of failing, so the end marker is checked explicitly.
+    """
+    if not data:
+        raise WorkspaceError(f"image file {str(path)!r} is empty (0 bytes)")
+    if data.startswith(_PNG_SIGNATURE) and _PNG_END not in data[-64:]:
+        raise WorkspaceError(f"image file {str(path)!r} is truncated: its PNG end marker (IEND) is missing "
+                             f"after {len(data)} bytes")
+    if data.startswith(_JPEG_START) and _JPEG_END not in data[-4096:]:
+        raise WorkspaceError(f"image file {str(path)!r} is truncated: its JPEG end marker (EOI) is missing "
+                             f"after {len(data)} bytes")
+
+
+def check_image_file(path: str | os.PathLike) -> None:
+    """Cheap check (no decoding) that ``path`` is a non-empty image that is not cut off.
+
+    Raises:
+        WorkspaceError: missing, unreadable, empty, or a PNG / JPEG without its end marker.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(size - 4096, len(head)))
+            tail = f.read()
+    except FileNotFoundError:
+        raise WorkspaceError(f"image file {str(path)!r} does not exist") from None
+    except OSError as exc:
+        raise WorkspaceError(f"cannot read image file {str(path)!r}: {exc.strerror or exc}") from None
+    # The head and the last 4 KiB are all that the end-marker check looks at.
+    data = head + tail if size <= 4096 + len(head) else head + b"\0" + tail
+    _check_image_bytes(data, path)
 
 
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Load an image as ``[H, W, 3]`` uint8 RGB (greyscale is expanded, alpha dropped, 16 bit reduced).
 
     Raises:
-        WorkspaceError: the file is missing or cannot be decoded.
+        WorkspaceError: the file is missing, empty, truncated (PNG / JPEG end marker missing) or cannot
+            be decoded.
     """
     path = Path(path)
     if not path.is_file():
         raise WorkspaceError(f"image file {str(path)!r} does not exist")
     data = np.fromfile(path, dtype=np.uint8)
-    image = cv2.imdecode(data, _READ_FLAGS) if data.size else None
+    _check_image_bytes(data.tobytes(), path)
+    image = cv2.imdecode(data, _READ_FLAGS)
     if image is None:
         raise WorkspaceError(f"image file {str(path)!r} could not be decoded (corrupt or unsupported format)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

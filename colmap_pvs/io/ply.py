@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import atomic_write_bytes
-from ..errors import MapFormatError, ShapeError
+from ..config import atomic_write_bytes, write_temp_file
+from ..errors import MapFormatError, OutputError, ShapeError
 
 logger = logging.getLogger(__name__)
 
@@ -38,6 +38,10 @@ __all__ = [
     "read_mesh",
     "write_visibility",
     "read_visibility",
+    "write_cloud_pair",
+    "commit_cloud_pair",
+    "cloud_pair_is_complete",
+    "vis_path_of",
 ]
 
 _PLY_TYPES = {
@@ -83,20 +87,9 @@ def _check_rows(name: str, array: np.ndarray | None, n: int, path: Path) -> None
         raise ShapeError(f"cannot write {str(path)!r}: {name} must be [{n}, 3], got shape {array.shape}")
 
 
-def write_point_cloud(
-    path: str | os.PathLike,
-    xyz: np.ndarray,
-    normals: np.ndarray | None = None,
-    colors: np.ndarray | None = None,
-) -> Path:
-    """Write a binary little-endian PLY in COLMAP's fused-cloud layout, atomically.
-
-    Args:
-        xyz: ``[N, 3]`` positions (stored as float32).
-        normals: ``[N, 3]`` normals or ``None`` (written as zeros).
-        colors: ``[N, 3]`` uint8 RGB or ``None`` (written as zeros).
-    """
-    path = Path(path)
+def _point_cloud_bytes(
+    path: Path, xyz: np.ndarray, normals: np.ndarray | None, colors: np.ndarray | None
+) -> bytes:
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ShapeError(f"cannot write {str(path)!r}: xyz must be [N, 3], got shape {xyz.shape}")
@@ -135,7 +128,23 @@ def write_point_cloud(
         "property uchar red\nproperty uchar green\nproperty uchar blue\n"
         "end_header\n"
     )
-    return atomic_write_bytes(path, header.encode("ascii") + rec.tobytes())
+    return header.encode("ascii") + rec.tobytes()
+
+
+def write_point_cloud(
+    path: str | os.PathLike,
+    xyz: np.ndarray,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """Write a binary little-endian PLY in COLMAP's fused-cloud layout, atomically.
+
+    Args:
+        xyz: ``[N, 3]`` positions (stored as float32).
+        normals: ``[N, 3]`` normals or ``None`` (written as zeros).
+        colors: ``[N, 3]`` uint8 RGB or ``None`` (written as zeros).
+    """
+    return atomic_write_bytes(path, _point_cloud_bytes(Path(path), xyz, normals, colors))
 
 
 def _parse_header(data: bytes, path: Path) -> tuple[str, list[tuple[str, int, list[tuple]]], int]:
@@ -348,7 +357,10 @@ def write_visibility(path: str | os.PathLike, offsets: np.ndarray, image_indices
         offsets: ``[N + 1]`` int; point ``i`` is seen by ``image_indices[offsets[i]:offsets[i + 1]]``.
         image_indices: ``[T]`` image indices into the workspace's sparse model order.
     """
-    path = Path(path)
+    return atomic_write_bytes(path, _visibility_bytes(Path(path), offsets, image_indices))
+
+
+def _visibility_bytes(path: Path, offsets: np.ndarray, image_indices: np.ndarray) -> bytes:
     offsets = np.asarray(offsets, dtype=np.int64)
     image_indices = np.asarray(image_indices, dtype=np.int64)
     if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != image_indices.size:
@@ -363,7 +375,78 @@ def write_visibility(path: str | os.PathLike, offsets: np.ndarray, image_indices
     mask = np.ones(body.size, dtype=bool)
     mask[count_pos] = False
     body[mask] = image_indices
-    return atomic_write_bytes(path, np.array([n], dtype="<u8").tobytes() + body.tobytes())
+    return np.array([n], dtype="<u8").tobytes() + body.tobytes()
+
+
+def vis_path_of(path: str | os.PathLike) -> Path:
+    """``PATH.vis``: the visibility file COLMAP keeps beside a fused ``PATH``."""
+    return Path(str(path) + ".vis")
+
+
+def commit_cloud_pair(tmp_ply: Path, tmp_vis: Path, path: str | os.PathLike) -> Path:
+    """Rename finished temporary ``PLY`` + ``.vis`` files into ``path`` and ``path.vis``.
+
+    Two renames cannot be atomic together, so the order makes a mismatched pair impossible: the old
+    ``path`` is removed first, then the new ``.vis`` and last the new ``path`` are renamed into place.
+    An interruption leaves at worst a ``.vis`` without its cloud (no cloud: not a result), never a
+    cloud beside another cloud's ``.vis``. The temporaries are removed on failure.
+    """
+    path = Path(path)
+    vis = vis_path_of(path)
+    try:
+        path.unlink(missing_ok=True)
+        os.replace(tmp_vis, vis)
+        os.replace(tmp_ply, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    finally:
+        tmp_ply.unlink(missing_ok=True)
+        tmp_vis.unlink(missing_ok=True)
+    return path
+
+
+def write_cloud_pair(
+    path: str | os.PathLike,
+    xyz: np.ndarray,
+    normals: np.ndarray | None,
+    colors: np.ndarray | None,
+    offsets: np.ndarray,
+    image_indices: np.ndarray,
+) -> tuple[Path, Path]:
+    """Write a fused cloud and its ``.vis`` (see :func:`write_point_cloud`, :func:`write_visibility`)
+    so that they become visible together or not at all (:func:`commit_cloud_pair`)."""
+    path = Path(path)
+    vis = vis_path_of(path)
+    ply_data = _point_cloud_bytes(path, xyz, normals, colors)
+    vis_data = _visibility_bytes(vis, offsets, image_indices)
+    if len(np.asarray(offsets)) - 1 != np.asarray(xyz).shape[0]:
+        raise ShapeError(f"cannot write {str(path)!r}: {np.asarray(xyz).shape[0]} points but visibility "
+                         f"for {len(np.asarray(offsets)) - 1}")
+    tmp_ply = write_temp_file(path, ply_data)
+    try:
+        tmp_vis = write_temp_file(vis, vis_data)
+    except BaseException:
+        tmp_ply.unlink(missing_ok=True)
+        raise
+    return commit_cloud_pair(tmp_ply, tmp_vis, path), vis
+
+
+def cloud_pair_is_complete(path: str | os.PathLike) -> bool:
+    """Whether ``path`` and ``path.vis`` both exist and describe the same number of points."""
+    path = Path(path)
+    vis = vis_path_of(path)
+    try:
+        with open(vis, "rb") as f:
+            head = f.read(8)
+        if len(head) != 8:
+            return False
+        n_vis = int(np.frombuffer(head, dtype="<u8")[0])
+        with open(path, "rb") as f:
+            header = f.read(4096)
+    except OSError:
+        return False
+    match = re.search(rb"element vertex (\d+)", header)
+    return match is not None and int(match.group(1)) == n_vis and b"end_header" in header
 
 
 def read_visibility(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

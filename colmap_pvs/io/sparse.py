@@ -61,7 +61,47 @@ def _camera_matrix(camera: pycolmap.Camera, model: str, params: np.ndarray) -> n
     return np.asarray(camera.calibration_matrix(), dtype=np.float64)
 
 
-def _convert_camera(camera: pycolmap.Camera, path: Path, require_pinhole: bool) -> Camera:
+def _model_file(path: Path, stem: str) -> str:
+    """``path/stem.bin`` (or ``.txt`` when only the text model exists), for error messages."""
+    ext = find_model_files(path)[0] or ".bin"
+    return str(path / f"{stem}{ext}")
+
+
+def _check_camera(camera: pycolmap.Camera, path: Path) -> None:
+    """Refuse cameras that no projection can use: sizes <= 0, non-finite parameters, focal <= 0."""
+    where = f"{_model_file(path, 'cameras')!r}: camera {camera.camera_id} ({camera.model.name})"
+    if camera.width <= 0 or camera.height <= 0:
+        raise WorkspaceError(f"{where} has the size {camera.width}x{camera.height}")
+    params = np.asarray(camera.params, dtype=np.float64)
+    for k in camera.focal_length_idxs():
+        if not (np.isfinite(params[k]) and params[k] > 0):
+            raise WorkspaceError(f"{where} has a non-positive or non-finite focal length {params[k]}")
+    if not np.isfinite(params).all():
+        raise WorkspaceError(f"{where} has non-finite parameters {params.tolist()}")
+
+
+def _checked_pose(image, path: Path) -> np.ndarray:
+    """``[3, 4]`` cam_from_world of a pycolmap image; refuses NaN / zero quaternions and translations."""
+    pose = image.cam_from_world()
+    quat = np.asarray(pose.rotation.quat, dtype=np.float64)  # x, y, z, w
+    t = np.asarray(pose.translation, dtype=np.float64)
+    matrix = np.asarray(pose.matrix(), dtype=np.float64)[:3, :4]
+    R = matrix[:, :3]
+    ok = np.isfinite(quat).all() and np.isfinite(matrix).all() and np.linalg.norm(quat) > 1e-12
+    if ok:
+        ok = bool(np.abs(R @ R.T - np.eye(3)).max() < 1e-6)
+    if not ok:
+        raise WorkspaceError(
+            f"{_model_file(path, 'images')!r}: image {str(image.name)!r} (id {image.image_id}) has an "
+            f"invalid pose: quaternion (w, x, y, z) {[quat[3], *quat[:3]]}, translation {t.tolist()}"
+        )
+    return matrix.copy()
+
+
+def _convert_camera(
+    camera: pycolmap.Camera, path: Path, require_pinhole: bool, warn_distortion: bool = True
+) -> Camera:
+    _check_camera(camera, path)
     model = camera.model.name
     if model not in PINHOLE_MODELS:
         if require_pinhole:
@@ -70,7 +110,8 @@ def _convert_camera(camera: pycolmap.Camera, path: Path, require_pinhole: bool) 
                 f"distortion; only {' and '.join(PINHOLE_MODELS)} are supported. Undistort the images first "
                 "with `colmap-pvs undistort` (or COLMAP's `colmap image_undistorter`)"
             )
-        logger.warning("camera %d in %s is %s; its distortion is ignored", camera.camera_id, path, model)
+        if warn_distortion:
+            logger.warning("camera %d in %s is %s; its distortion is ignored", camera.camera_id, path, model)
     params = np.asarray(camera.params, dtype=np.float64).copy()
     return Camera(
         camera_id=int(camera.camera_id),
@@ -82,12 +123,18 @@ def _convert_camera(camera: pycolmap.Camera, path: Path, require_pinhole: bool) 
     )
 
 
-def _convert_points(rec: pycolmap.Reconstruction, registered: set[int]) -> Points3D:
+def _convert_points(
+    rec: pycolmap.Reconstruction, registered: set[int], path: Path | None = None
+) -> Points3D:
     ids, xyz, rgb, error, lengths, track_ids = [], [], [], [], [], []
+    non_finite = 0
     for point_id in sorted(rec.points3D):
         point = rec.points3D[point_id]
         track = [el.image_id for el in point.track.elements if el.image_id in registered]
         if not track:
+            continue
+        if not np.isfinite(point.xyz).all():
+            non_finite += 1
             continue
         ids.append(point_id)
         xyz.append(point.xyz)
@@ -95,6 +142,9 @@ def _convert_points(rec: pycolmap.Reconstruction, registered: set[int]) -> Point
         error.append(point.error)
         lengths.append(len(track))
         track_ids.extend(track)
+    if non_finite:
+        where = _model_file(path, "points3D") if path is not None else "the sparse model"
+        logger.warning("%d sparse point(s) with non-finite coordinates in %s are ignored", non_finite, where)
     offsets = np.zeros(len(ids) + 1, dtype=np.int64)
     np.cumsum(lengths, out=offsets[1:])
     return Points3D(
@@ -196,13 +246,17 @@ def _read_reconstruction(path: Path) -> pycolmap.Reconstruction:
     return rec
 
 
-def read_sparse_model(path: str | os.PathLike, *, require_pinhole: bool = True) -> SparseModel:
+def read_sparse_model(
+    path: str | os.PathLike, *, require_pinhole: bool = True, warn_distortion: bool = True
+) -> SparseModel:
     """Read a binary or text COLMAP model folder.
 
     Args:
         path: folder with ``cameras``, ``images`` and ``points3D`` (``.bin`` preferred over ``.txt``).
         require_pinhole: raise :class:`UnsupportedCameraError` for a registered image whose camera is
             not SIMPLE_PINHOLE/PINHOLE (distortion is never dropped silently).
+        warn_distortion: with ``require_pinhole=False``, warn that a distorted camera's distortion is
+            ignored; callers that undistort the images themselves pass ``False``.
 
     Returns:
         the model with the registered images, the cameras they use, and the points observed by
@@ -217,8 +271,10 @@ def read_sparse_model(path: str | os.PathLike, *, require_pinhole: bool = True) 
     if not registered:
         raise WorkspaceError(f"sparse model {str(path)!r} is empty: it has no registered images")
     camera_ids = sorted({int(rec.images[i].camera_id) for i in registered})
-    cameras = {cid: _convert_camera(rec.cameras[cid], path, require_pinhole) for cid in camera_ids}
-    points = _convert_points(rec, set(registered))
+    cameras = {
+        cid: _convert_camera(rec.cameras[cid], path, require_pinhole, warn_distortion) for cid in camera_ids
+    }
+    points = _convert_points(rec, set(registered), path)
     observed = _point_ids_per_image(points)
     images: dict[int, Image] = {}
     for image_id in registered:
@@ -227,7 +283,7 @@ def read_sparse_model(path: str | os.PathLike, *, require_pinhole: bool = True) 
             image_id=image_id,
             name=str(image.name),
             camera_id=int(image.camera_id),
-            cam_from_world=np.asarray(image.cam_from_world().matrix(), dtype=np.float64)[:3, :4].copy(),
+            cam_from_world=_checked_pose(image, path),
             point3D_ids=observed.get(image_id, np.zeros(0, dtype=np.int64)),
         )
     logger.info("read %d images, %d cameras, %d points from %s", len(images), len(cameras), len(points), path)

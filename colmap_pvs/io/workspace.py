@@ -31,7 +31,7 @@ import pycolmap
 from ..config import atomic_write_bytes, make_temp_dir
 from ..errors import ConfigError, WorkspaceError
 from ..types import SparseModel
-from .images import read_image_size
+from .images import check_image_file, read_image_size
 from .sparse import find_model_files, read_sparse_model, replace_directory
 
 logger = logging.getLogger(__name__)
@@ -224,13 +224,23 @@ def undistort(config: UndistortConfig) -> Workspace:
         raise WorkspaceError(f"image folder {str(image_path)!r} does not exist")
     if output.exists() and (not output.is_dir() or any(output.iterdir())):
         raise WorkspaceError(f"output folder {str(output)!r} already exists and is not empty")
-    model = read_sparse_model(config.input_path, require_pinhole=False)
+    # Distortion is not ignored: the images are undistorted below.
+    model = read_sparse_model(config.input_path, require_pinhole=False, warn_distortion=False)
     missing = sorted(n for n in model.image_ids_by_name if not (image_path / n).is_file())
     if missing:
         raise WorkspaceError(
             f"{len(missing)} image(s) of the model are missing from {str(image_path)!r}: "
             f"{', '.join(missing[:10])}"
         )
+    # COLMAP's undistorter re-encodes a cut-off photo as a valid image with its missing part black.
+    broken = []
+    for name in sorted(model.image_ids_by_name):
+        try:
+            check_image_file(image_path / name)
+        except WorkspaceError as exc:
+            broken.append(str(exc))
+    if broken:
+        raise WorkspaceError(f"{len(broken)} image(s) cannot be undistorted: {'; '.join(broken[:5])}")
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = make_temp_dir(prefix=f".{output.name}.", suffix=".tmp", parent=output.parent)
     try:
@@ -331,7 +341,8 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
         checked by the caller (:meth:`SourceSpec.resolve`).
 
     Raises:
-        WorkspaceError: missing file, or a malformed/duplicate entry (naming line number and content).
+        WorkspaceError: missing file, a file without any entry, or a malformed/duplicate entry (naming
+            line number and content).
     """
     path = Path(path)
     try:
@@ -362,6 +373,11 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
         reference = None
     if reference is not None:
         raise WorkspaceError(f"{path}:{reference[0]}: reference image {reference[1]!r} has no source line")
+    if not specs:
+        raise WorkspaceError(
+            f"patch-match config {str(path)!r} lists no reference image; delete it to use every image, "
+            "or run `colmap-pvs select-views`"
+        )
     return specs
 
 

@@ -1,0 +1,155 @@
+"""COLMAP's ``patch_match_stereo`` flags on ``colmap-pvs stereo`` (alias ``patch_match_stereo``).
+
+A script that runs ``colmap patch_match_stereo --workspace_path dense --workspace_format COLMAP
+--PatchMatchStereo.geom_consistency true`` keeps working after swapping the binary for
+``colmap-pvs``. Flags with a meaning here are translated to :class:`colmap_pvs.stereo.StereoConfig`
+fields; flags of COLMAP's patch-match optimiser (window, NCC, filtering, ...) have no meaning for a
+learned network and are named in one warning, never dropped silently.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from colmap_pvs.config import parse_bool
+from colmap_pvs.errors import ConfigError
+
+logger = logging.getLogger("colmap_pvs.cli")
+
+_DEST = "_colmap:"
+
+
+def _int(flag: str, text: str) -> int:
+    try:
+        return int(str(text).strip())
+    except ValueError:
+        raise ConfigError(f"--{flag}: expected an integer, got {text!r}") from None
+
+
+def _bool(flag: str, text: str) -> bool:
+    try:
+        return parse_bool(text)
+    except ConfigError:
+        raise ConfigError(f"--{flag}: expected a boolean (true/false/1/0), got {text!r}") from None
+
+
+def _max_image_size(flag: str, text: str) -> dict[str, Any]:
+    """= --max_image_size (COLMAP's -1, full size, is our <= 0)"""
+    return {"max_image_size": _int(flag, text)}  # COLMAP's -1 (full size) is our <= 0
+
+
+def _geom_consistency(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_consistency"""
+    return {"geom_consistency": _bool(flag, text)}
+
+
+def _num_threads(flag: str, text: str) -> dict[str, Any]:
+    """= --threads (COLMAP's -1, all cores, is our 0)"""
+    n = _int(flag, text)
+    return {"threads": max(n, 0)}  # COLMAP's -1 (all cores) is torch's default, our 0
+
+
+def _gpu_index(flag: str, text: str) -> dict[str, Any]:
+    """= --device: -1 is auto, a GPU index is cuda (the first visible GPU)"""
+    items = [s.strip() for s in str(text).split(",") if s.strip()]
+    indices = [_int(flag, s) for s in items]
+    if not indices or indices == [-1]:
+        return {"device": "auto"}
+    if any(i < 0 for i in indices):
+        raise ConfigError(f"--{flag}: expected -1 or GPU indices, got {text!r}")
+    if indices != [0]:
+        logger.warning(
+            "--%s %s: colmap-pvs runs on one GPU, the first visible one; select it with "
+            "CUDA_VISIBLE_DEVICES=%d", flag, text, indices[0],
+        )
+    return {"device": "cuda"}
+
+
+def _workspace_format(flag: str, text: str) -> dict[str, Any]:
+    """COLMAP (the only format; PMVS is refused)"""
+    if str(text).strip().upper() != "COLMAP":
+        raise ConfigError(f"--{flag} {text}: only the COLMAP workspace format is supported (not PMVS)")
+    return {}
+
+
+def _config_path(flag: str, text: str) -> dict[str, Any]:
+    """refused when set: patch-match.cfg is read from WORKSPACE/stereo/"""
+    if str(text).strip():
+        raise ConfigError(
+            f"--{flag} {text!r}: colmap-pvs reads WORKSPACE/stereo/patch-match.cfg; copy the file there"
+        )
+    return {}
+
+
+def _project_path(flag: str, text: str) -> dict[str, Any]:
+    """refused: .ini project files are not read"""
+    raise ConfigError(f"--{flag} {text!r}: .ini project files are not read; pass the options as flags")
+
+
+#: flag -> translation into StereoConfig fields (``None``: accepted, no meaning here).
+PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None] = {
+    "workspace_format": _workspace_format,
+    "pmvs_option_name": None,
+    "config_path": _config_path,
+    "project_path": _project_path,
+    "random_seed": None,
+    "PatchMatchStereo.max_image_size": _max_image_size,
+    "PatchMatchStereo.geom_consistency": _geom_consistency,
+    "PatchMatchStereo.num_threads": _num_threads,
+    "PatchMatchStereo.gpu_index": _gpu_index,
+    **{
+        f"PatchMatchStereo.{name}": None
+        for name in (
+            "depth_min", "depth_max", "window_radius", "window_step", "sigma_spatial", "sigma_color",
+            "num_samples", "ncc_sigma", "min_triangulation_angle", "incident_angle_sigma",
+            "num_iterations", "geom_consistency_regularizer", "geom_consistency_max_cost", "filter",
+            "filter_min_ncc", "filter_min_triangulation_angle", "filter_min_num_consistent",
+            "filter_geom_consistency_max_cost", "cache_size", "allow_missing_files",
+            "write_consistency_graph",
+        )
+    },
+}
+
+
+def add_colmap_flags(parser: argparse.ArgumentParser) -> None:
+    """Add COLMAP's ``patch_match_stereo`` flags (values are translated by :func:`translate_colmap_flags`)."""
+    group = parser.add_argument_group(
+        "COLMAP patch_match_stereo flags",
+        "accepted so that `colmap patch_match_stereo` command lines work unchanged; flags without a "
+        "meaning for a learned network are named in a warning",
+    )
+    for flag, translate in PATCH_MATCH_STEREO_FLAGS.items():
+        if translate is None:
+            help_text = "accepted, no meaning here (ignored with a warning)"
+        else:
+            help_text = str(translate.__doc__)
+        group.add_argument(f"--{flag}", dest=_DEST + flag, default=argparse.SUPPRESS, metavar="V",
+                           help=help_text)
+
+
+def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
+    """StereoConfig values from the COLMAP flags in ``args``; warns naming the ignored ones.
+
+    Raises:
+        ConfigError: a bad value, an unsupported format, or a COLMAP flag that contradicts our own
+            flag for the same setting.
+    """
+    given = {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST)}
+    values: dict[str, Any] = {}
+    ignored = []
+    for flag, text in given.items():
+        translate = PATCH_MATCH_STEREO_FLAGS[flag]
+        if translate is None:
+            ignored.append(f"--{flag}")
+            continue
+        for key, value in translate(flag, text).items():
+            own = getattr(args, key, None)
+            if hasattr(args, key) and own != value:
+                raise ConfigError(f"--{flag} {text} contradicts --{key} {own}; give only one of them")
+            values[key] = value
+    if ignored:
+        logger.warning("ignored COLMAP flag(s) without a meaning for colmap-pvs: %s", ", ".join(ignored))
+    return values

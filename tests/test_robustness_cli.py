@@ -1,0 +1,92 @@
+"""Issue 11, command line: every --help works, bare booleans, COLMAP's patch_match_stereo flags,
+OS errors as one line."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+from colmap_pvs.cli.main import COMMANDS, build_parser, main, translate_colmap_flags
+
+from colmap_pvs.errors import ConfigError
+
+
+def _help_argvs() -> list[list[str]]:
+    argvs = [["--help"]]
+    groups = set()
+    for cmd in COMMANDS:
+        words = cmd.name.split()
+        argvs.append([*words, "--help"])
+        if len(words) > 1:
+            groups.add(words[0])
+    argvs += [[g, "--help"] for g in sorted(groups)]
+    argvs.append(["patch_match_stereo", "--help"])
+    return argvs
+
+
+@pytest.mark.parametrize("argv", _help_argvs(), ids=lambda a: " ".join(a))
+def test_help_of_every_command_and_subcommand(argv, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: colmap-pvs" in out
+    if argv[0] in {c.name.split()[0] for c in COMMANDS} and len(argv) == 2 and " " not in argv[0]:
+        assert "--" in out  # flags are listed
+
+
+def test_bare_boolean_flags_and_explicit_values():
+    parser = build_parser()
+    assert parser.parse_args(["stereo", "--workspace_path", "w", "--overwrite"]).overwrite is True
+    args = parser.parse_args(["stereo", "--workspace_path", "w", "--overwrite", "false", "--previews"])
+    assert args.overwrite is False and args.previews is True
+    args = parser.parse_args(["stereo", "--previews", "--workspace_path", "w"])  # bare, then a flag
+    assert args.previews is True and args.workspace_path == "w"
+    assert parser.parse_args(["stereo", "--workspace_path", "w", "--previews=0"]).previews is False
+    with pytest.raises(SystemExit):
+        parser.parse_args(["stereo", "--workspace_path", "w", "--previews", "maybe"])
+
+
+def test_colmap_patch_match_stereo_flags_translate(caplog):
+    argv = ["--workspace_path", "dense", "--workspace_format", "COLMAP",
+            "--PatchMatchStereo.max_image_size", "2000", "--PatchMatchStereo.geom_consistency", "false",
+            "--PatchMatchStereo.num_threads=-1", "--PatchMatchStereo.gpu_index", "-1",
+            "--PatchMatchStereo.window_radius", "7", "--PatchMatchStereo.filter", "1"]
+    parser = build_parser()
+    args = parser.parse_args(["patch_match_stereo", *argv])
+    assert args.command == "stereo"
+    with caplog.at_level("WARNING"):
+        values = translate_colmap_flags(args)
+    assert values == {"max_image_size": 2000, "geom_consistency": False, "threads": 0, "device": "auto"}
+    assert "PatchMatchStereo.window_radius" in caplog.text and "PatchMatchStereo.filter" in caplog.text
+    assert "max_image_size" not in caplog.text  # only flags without a meaning are named
+    # The same flags work on `colmap-pvs stereo`, and a GPU index selects CUDA.
+    args = parser.parse_args(["stereo", "--workspace_path", "d", "--PatchMatchStereo.gpu_index", "0"])
+    assert translate_colmap_flags(args) == {"device": "cuda"}
+    args = parser.parse_args(["stereo", "--workspace_path", "d", "--workspace_format", "PMVS"])
+    with pytest.raises(ConfigError, match="PMVS"):
+        translate_colmap_flags(args)
+    # Our own flag and its COLMAP alias together must agree.
+    args = parser.parse_args(["stereo", "--workspace_path", "d", "--max_image_size", "5",
+                              "--PatchMatchStereo.max_image_size", "7"])
+    with pytest.raises(ConfigError, match="max_image_size"):
+        translate_colmap_flags(args)
+
+
+def test_colmap_flags_reach_the_config(tmp_path, capsys):
+    # Without a workspace the run fails, but only after the flags were translated and validated.
+    code = main(["patch_match_stereo", "--workspace_path", str(tmp_path / "nowhere"),
+                 "--PatchMatchStereo.max_image_size", "big"])
+    assert code == 1 and "max_image_size" in capsys.readouterr().err
+
+
+def test_os_errors_are_one_line(tmp_path, monkeypatch, capsys):
+    import colmap_pvs.views as views
+
+    def boom(config):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "stereo" / "x.bin"))
+
+    monkeypatch.setattr(views, "run_select_views", boom)
+    assert main(["select-views", "--workspace_path", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "No space left on device" in err and "x.bin" in err

@@ -1,0 +1,50 @@
+"""Issue 11: bad config values are refused where they enter, naming the setting and the value."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from colmap_pvs.cli.main import main
+
+from colmap_pvs.config import config_from_dict
+from colmap_pvs.errors import ConfigError
+from colmap_pvs.fusion import FuseConfig
+from colmap_pvs.stereo import StereoConfig
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("min_confidence", 2), ("min_confidence", "nan"), ("min_confidence", -0.1), ("threads", -3),
+     ("num_views", 1), ("min_sources", 0), ("max_image_size", 8)],
+)
+def test_stereo_config_refuses_bad_values(key, value):
+    with pytest.raises(ConfigError, match=key):
+        config_from_dict(StereoConfig, {"workspace_path": "w", key: value})
+
+
+def test_stereo_cli_refuses_bad_values(tmp_path, capsys):
+    for flag, value in (("--min_confidence", "2"), ("--min_confidence", "nan"), ("--threads", "-3")):
+        assert main(["stereo", "--workspace_path", str(tmp_path), flag, value]) == 1
+        err = capsys.readouterr().err
+        assert flag[2:] in err and value in err and len(err.strip().splitlines()) == 1
+
+
+def test_nan_is_never_a_number():
+    with pytest.raises(ConfigError, match="nan"):
+        config_from_dict(FuseConfig, {"workspace_path": "w", "max_depth_error": "nan"})
+
+
+@pytest.mark.parametrize(("key", "value"), [("min_confidence", 1.5), ("min_confidence", -1)])
+def test_fuse_config_refuses_bad_values(key, value):
+    with pytest.raises(ConfigError, match=key):
+        FuseConfig(workspace_path=Path("w"), **{key: value})
+
+
+@pytest.mark.parametrize(("key", "value"), [("num_threads", -3), ("num_threads", 0), ("mesh_depth", 0),
+                                            ("max_image_size", 4)])
+def test_reconstruct_config_refuses_bad_values(key, value):
+    from colmap_pvs.reconstruct import ReconstructConfig
+
+    with pytest.raises(ConfigError, match=key):
+        ReconstructConfig(image_path=Path("i"), workspace_path=Path("w"), **{key: value})

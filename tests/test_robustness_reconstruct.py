@@ -1,0 +1,115 @@
+"""Issue 11, ``reconstruct``: provenance (a changed setting recomputes with --overwrite or is refused,
+naming it), quiet pycolmap log in the workspace, a progress bar per SfM stage, a closing summary that
+names where to look, and bad photos refused before SfM."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from colmap_pvs.cli.main import main
+from conftest import make_tiny_checkpoint
+
+from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.io.maps import read_depth_map
+from colmap_pvs.reconstruct import ReconstructConfig, reconstruct
+
+GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d", re.MULTILINE)
+
+
+def test_changed_settings_are_refused_or_recomputed(analytic_scene, tmp_path, capfd):
+    ws = analytic_scene["root"]
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    argv = ["reconstruct", "--image_path", str(ws / "images"), "--workspace_path", str(out),
+            "--input_path", str(ws / "sparse"), "--checkpoint", str(ckpt), "--num_views", "3",
+            "--mesh_depth", "5", "--num_threads", "1", "--max_image_size", "64"]
+    assert main(argv) == 0
+    captured = capfd.readouterr()
+    assert not GLOG_LINE.search(captured.err), "pycolmap's log must go to the workspace, not the terminal"
+    logs = list((out / "logs").glob("pycolmap*"))
+    assert logs and any(GLOG_LINE.search(p.read_text()) for p in logs)
+    for where in ("previews:", "fused cloud:", "mesh:", "pycolmap log:"):
+        assert where in captured.out
+    assert list((out / "dense" / "stereo" / "previews").glob("*.depth.png"))
+    depth = out / "dense" / "stereo" / "depth_maps" / "view_000.png.geometric.bin"
+    assert max(read_depth_map(depth).shape) == 64
+
+    # Another --max_image_size: refused, naming the setting, both values and --overwrite.
+    assert main([*argv[:-1], "48"]) == 1
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "max_image_size" in err[0] and "64" in err[0] and "48" in err[0]
+    assert "--overwrite" in err[0] and "stereo" in err[0]
+    assert max(read_depth_map(depth).shape) == 64  # nothing was touched
+
+    # With --overwrite only stereo and what follows it are recomputed.
+    config = ReconstructConfig(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse",
+                               checkpoint=ckpt, num_views=3, mesh_depth=5, num_threads=1, max_image_size=48,
+                               overwrite=True)
+    result = reconstruct(config)
+    assert "undistort" in result.resumed and "stereo" not in result.resumed and "fusion" not in result.resumed
+    assert max(read_depth_map(depth).shape) == 48
+    # ... and then the new settings are the workspace's: a plain rerun resumes everything.
+    result = reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False}))
+    assert {"undistort", "stereo", "fusion", "mesh"} <= set(result.resumed)
+
+    # The same checkpoint path with other weights is a changed checkpoint.
+    make_tiny_checkpoint(ckpt, regularization_channels=8)
+    with pytest.raises(ConfigError, match="checkpoint.*content"):
+        reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False}))
+
+    # Another fusion method only recomputes fusion and mesh.
+    make_tiny_checkpoint(ckpt)
+    with pytest.raises(ConfigError, match="fusion_method"):
+        reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False, "fusion_method": "colmap"}))
+    result = reconstruct(ReconstructConfig(**{**config.__dict__, "fusion_method": "colmap"}))
+    assert "stereo" in result.resumed and "fusion" not in result.resumed
+
+    # --overwrite with nothing changed recomputes every stage.
+    result = reconstruct(ReconstructConfig(**{**config.__dict__, "fusion_method": "colmap"}))
+    assert result.resumed == ["features", "matching", "mapping"]  # given by --input_path
+
+
+def test_bad_photos_are_refused_before_sfm(analytic_scene, tmp_path):
+    images = tmp_path / "photos"
+    shutil.copytree(analytic_scene["root"] / "images", images)
+    (images / "view_001.png").write_bytes(b"")
+    data = (images / "view_002.png").read_bytes()
+    (images / "view_002.png").write_bytes(data[: len(data) // 3])
+    pattern = r"2 of 5 photos.*view_001\.png.*empty.*view_002\.png.*truncated"
+    with pytest.raises(WorkspaceError, match=pattern):
+        reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_sfm_stages_have_progress_bars_and_a_quiet_log(tmp_path, capfd):
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((600, 800)) * 255).astype(np.uint8), (0, 0), 2)
+    images = tmp_path / "photos"
+    images.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(images / f"{i}.png"), texture[50:450, 60 * i : 60 * i + 500])
+    result = reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out",
+                                           max_num_features=256, num_threads=1, stop_after="matching"))
+    assert result.stage_seconds.keys() >= {"features", "matching"}
+    err = capfd.readouterr().err
+    assert not GLOG_LINE.search(err)
+    assert re.search(r"features: 100%.*4/4", err) and re.search(r"matching: 100%.*6/6", err)
+
+
+def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
+    import pycolmap
+
+    from colmap_pvs.io.pycolmap_output import pycolmap_log_to_file
+
+    with pycolmap_log_to_file(tmp_path / "logs") as folder:
+        pycolmap.logging.info("quiet message")
+    assert folder == tmp_path / "logs"
+    assert "quiet message" not in capfd.readouterr().err
+    assert "quiet message" in "".join(p.read_text() for p in folder.glob("pycolmap.log.*"))
+    with pycolmap_log_to_file(tmp_path / "logs2", enabled=False) as folder:  # --log_level DEBUG
+        pycolmap.logging.info("loud message")
+    assert folder is None and "loud message" in capfd.readouterr().err

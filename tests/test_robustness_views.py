@@ -1,0 +1,67 @@
+"""Issue 11: depth ranges are robust to far outlier sparse points (rule in docs/CONVENTIONS.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_views import make_model
+
+from colmap_pvs.views import ViewSelectionConfig, compute_depth_range, select_views
+
+
+def _scene(n_inliers: int, outliers: int, factor: float, seed: int = 0):
+    """Image 1 at (10, 0, 0) looks at the origin; inliers at depths 4..7, outliers ``factor`` x farther."""
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(4.0, 7.0, n_inliers)
+    lateral = rng.uniform(-0.5, 0.5, (n_inliers, 2))
+    center = np.array([10.0, 0.0, 0.0])
+    inl = np.stack([center[0] - depth, lateral[:, 0], lateral[:, 1]], axis=1)
+    idx = rng.choice(n_inliers, outliers, replace=False)
+    far = center + (inl[idx] - center) * factor
+    xyz = np.concatenate([inl, far])
+    centers = np.array([center, [0.0, 10.0, 0.0], [0.0, -10.0, 0.0]])
+    return make_model(centers, xyz, [[1, 2, 3]] * len(xyz))
+
+
+@pytest.mark.parametrize(
+    ("n_inliers", "outliers", "factor"),
+    [(297, 5, 1e6), (294, 8, 10.0), (1000, 26, 10.0), (300, 3, 1e-3)],  # 1e-3: outliers near the camera
+)
+def test_far_outliers_do_not_widen_the_depth_range(n_inliers, outliers, factor, caplog):
+    model = _scene(n_inliers, outliers, factor)
+    with caplog.at_level("WARNING"):
+        dmin, dmax = compute_depth_range(model, model.images[1])
+    assert 4.0 * 0.75 * 0.98 <= dmin <= 4.2 * 0.75 and 6.8 * 1.25 <= dmax <= 7.0 * 1.25 * 1.02
+    assert "outlier" in caplog.text and f"{outliers} of {n_inliers + outliers}" in caplog.text
+    # select_views uses the same rule, and says so once
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        sel = select_views(model)
+    assert sel.references["img_001.jpg"].depth_range == pytest.approx((dmin, dmax))
+    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "outlier" in r.getMessage()]
+    assert len(warnings) == 1
+
+
+def test_structure_is_not_an_outlier():
+    # 30 % of the points 10x farther: a background, not outliers; the range must cover it
+    model = _scene(200, 86, 10.0)
+    dmin, dmax = compute_depth_range(model, model.images[1])
+    assert dmax > 40.0 and dmin < 4.0
+
+
+def test_wide_scenes_keep_their_range():
+    # depths spread log-uniformly over 1..100: nothing is an outlier
+    rng = np.random.default_rng(1)
+    depth = np.exp(rng.uniform(0, np.log(100.0), 400))
+    xyz = np.stack([10.0 - depth, np.zeros(400), np.zeros(400)], axis=1)
+    model = make_model(np.array([[10.0, 0, 0], [0, 10.0, 0]]), xyz, [[1, 2]] * 400)
+    lo, hi = np.percentile(depth, [1, 99])
+    dmin, dmax = compute_depth_range(model, model.images[1])
+    assert dmin == pytest.approx(0.75 * lo) and dmax == pytest.approx(1.25 * hi)
+
+
+def test_outlier_rejection_can_be_switched_off():
+    model = _scene(297, 5, 1e6)
+    cfg = ViewSelectionConfig(depth_outlier_sigmas=0.0)
+    _, dmax = compute_depth_range(model, model.images[1], cfg)
+    assert dmax > 1e3
