@@ -31,8 +31,9 @@ if "--omp_passive" in sys.argv:  # must happen before the OpenMP runtime starts 
 
 import torch  # noqa: E402
 
-from colmap_pvs.config import add_config_arguments, config_from_args  # noqa: E402
+from colmap_pvs.config import add_config_arguments, config_from_args, replace_config  # noqa: E402
 from colmap_pvs.model import PVSNet, PVSNetConfig  # noqa: E402
+from colmap_pvs.model.runtime import estimate_peak_memory  # noqa: E402
 from colmap_pvs.train.losses import depth_loss  # noqa: E402
 
 
@@ -67,6 +68,39 @@ def count_flops(model: PVSNet, inputs) -> int:
     return counter.get_total_flops()
 
 
+def cpu_time_profile(run, top: int = 15) -> str:
+    """Per-operator CPU time of one call of ``run`` (``time.thread_time`` around every aten op).
+
+    Unlike ``torch.profiler`` (wall time per op), this excludes the time spent waiting for a core, so
+    it is meaningful on a machine shared with other jobs. With more than one torch thread the ops'
+    work on the other threads is not counted.
+    """
+    import collections
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Timer(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.ms: collections.Counter = collections.Counter()
+            self.calls: collections.Counter = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            start = time.thread_time()
+            out = func(*args, **(kwargs or {}))
+            name = str(func.overloadpacket)
+            self.ms[name] += 1000.0 * (time.thread_time() - start)
+            self.calls[name] += 1
+            return out
+
+    timer = _Timer()
+    with timer:
+        run()
+    lines = [f"CPU time in aten ops (calling thread): {sum(timer.ms.values()):.0f} ms"]
+    lines += [f"{ms:9.1f} ms {timer.calls[k]:6d}  {k}" for k, ms in timer.ms.most_common(top)]
+    return "\n".join(lines)
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -80,10 +114,19 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=5, help="N, reference included")
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument(
+        "--checkpoint", default=None, help="time this checkpoint's model (config overrides still apply)"
+    )
     parser.add_argument("--repeats", type=int, default=2, help="timed runs (after one warm-up)")
     parser.add_argument("--train", action="store_true", help="time a training step (forward+backward+Adam)")
     parser.add_argument("--no_flops", action="store_true", help="skip the FLOP count")
     parser.add_argument("--profile", action="store_true", help="print the top operators (torch.profiler)")
+    parser.add_argument(
+        "--cpu_profile",
+        action="store_true",
+        help="print the top operators by the CPU time of the calling thread (robust on a loaded machine; "
+        "use with --threads 1)",
+    )
     parser.add_argument(
         "--omp_passive", action="store_true", help="OMP_WAIT_POLICY=PASSIVE (shared machines)"
     )
@@ -91,8 +134,20 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(args.threads)
-    config = config_from_args(PVSNetConfig, args)
-    model = PVSNet(config)
+    if args.checkpoint:
+        from colmap_pvs.config import config_to_dict
+        from colmap_pvs.model import load_checkpoint
+
+        loaded, _ = load_checkpoint(args.checkpoint)
+        defaults = config_to_dict(PVSNetConfig())
+        overrides = config_to_dict(config_from_args(PVSNetConfig, args)).items()
+        given = {k: v for k, v in overrides if v != defaults[k]}  # flags given on the command line
+        config = replace_config(loaded.config, **given)
+        model = PVSNet(config)
+        model.load_state_dict(loaded.state_dict())
+    else:
+        config = config_from_args(PVSNetConfig, args)
+        model = PVSNet(config)
     inputs = make_inputs(args.batch, args.views, args.height, args.width)
     print(f"config: {config}")
     print(
@@ -129,8 +184,12 @@ def main() -> None:
         run()
         times.append(time.perf_counter() - t0)
     what = "train step (fwd+bwd+Adam)" if args.train else "forward (inference_mode)"
-    print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
+    if times:
+        print(f"{what}: {min(times):.3f} s best, {sum(times) / len(times):.3f} s mean over {len(times)} runs")
     print(f"peak RSS: {peak_rss_mb():.0f} MB")
+    if not args.train:
+        est = estimate_peak_memory(args.height, args.width, args.views, config, batch=args.batch)
+        print(f"estimated peak (colmap_pvs.model.runtime.estimate_peak_memory): {est / 2**20:.0f} MB")
 
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
@@ -138,6 +197,9 @@ def main() -> None:
         with profile(activities=[ProfilerActivity.CPU]) as prof:
             run()
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+
+    if args.cpu_profile:
+        print(cpu_time_profile(run))
 
     if not args.no_flops:
         print(f"FLOPs of one forward pass: {count_flops(model, inputs) / 1e9:.1f} GFLOP")

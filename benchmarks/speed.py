@@ -72,9 +72,14 @@ def machine_peak(threads: int, fma_units: int | None = None, clock_ghz: float | 
     else:
         isa, lanes = "SSE", 4
     has_fma = "fma" in flags or "avx512f" in flags
-    units = fma_units if fma_units is not None else 2
+    # AMD Zen 4 (family 25 with AVX-512) executes a 512-bit FMA as two halves on its two 256-bit FMA
+    # pipes: 16 fp32 FMAs per cycle, i.e. one 512-bit unit. Zen 5 (family 26) has full-width units.
+    zen4 = cpu.get("vendor_id") == "AuthenticAMD" and cpu.get("cpu family") == "25" and lanes == 16
+    units = fma_units if fma_units is not None else (1 if zen4 else 2)
     assumptions = []
-    if fma_units is None:
+    if fma_units is None and zen4:
+        assumptions.append("AMD Zen 4: AVX-512 double-pumped on 2x256-bit FMA pipes = 1 512-bit unit")
+    elif fma_units is None:
         assumptions.append("2 FMA units per core assumed (server Xeon/EPYC; some SKUs have 1: --fma_units)")
     if clock_ghz is None:
         mhz = ls.get("CPU max MHz") or cpu.get("cpu MHz")
@@ -83,7 +88,10 @@ def machine_peak(threads: int, fma_units: int | None = None, clock_ghz: float | 
             src = "lscpu 'CPU max MHz'" if ls.get("CPU max MHz") else "/proc/cpuinfo 'cpu MHz' (nominal)"
         except (TypeError, ValueError):
             clock_ghz, src = 2.0, "unknown, 2.0 GHz assumed"
-        assumptions.append(f"clock {clock_ghz:.2f} GHz from {src}; turbo/AVX-512 down-clocking ignored")
+        assumptions.append(
+            f"clock {clock_ghz:.2f} GHz from {src}; turbo/AVX-512 down-clocking ignored (a VM's 'cpu MHz' "
+            "is the base clock: pass --clock_ghz with the boost clock for the stricter peak)"
+        )
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     used = min(threads, cores) if threads > 0 else cores
     flop_per_cycle = lanes * (2 if has_fma else 1) * units
@@ -131,13 +139,21 @@ def _inputs(num_views: int, height: int, width: int):
     )
 
 
-def _build_model(checkpoint: str | None):
+def _build_model(checkpoint: str | None, conv_dtype: str | None = None):
+    from colmap_pvs.config import replace_config
     from colmap_pvs.model import PVSNet, PVSNetConfig, load_checkpoint
 
     if checkpoint:
         model, _meta = load_checkpoint(Path(checkpoint), map_location="cpu")
-        return model.eval(), f"checkpoint {checkpoint}"
-    return PVSNet(PVSNetConfig()).eval(), "random weights, default PVSNetConfig"
+        what = f"checkpoint {checkpoint}"
+    else:
+        model, what = PVSNet(PVSNetConfig()), "random weights, default PVSNetConfig"
+    if conv_dtype and conv_dtype != model.config.conv_dtype:  # a switch without parameters
+        state = model.state_dict()
+        model = PVSNet(replace_config(model.config, conv_dtype=conv_dtype))
+        model.load_state_dict(state)
+        what += f", conv_dtype={conv_dtype}"
+    return model.eval(), what
 
 
 def _register_onednn_conv_flops() -> None:
@@ -165,7 +181,7 @@ def worker(args: argparse.Namespace) -> dict:
         torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.resolution.split("x"))
     rss_import = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    model, what = _build_model(args.checkpoint)
+    model, what = _build_model(args.checkpoint, args.conv_dtype)
     inputs = _inputs(args.num_views, height, width)
     images, K, poses, dmin, dmax, sparse = inputs
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -175,11 +191,12 @@ def worker(args: argparse.Namespace) -> dict:
         with counter:  # the warm-up pass counts FLOPs
             model(images, K, poses, dmin, dmax, sparse_depth=sparse)
         first = time.perf_counter() - start
-        times = []
+        times, cpu_times = [], []
         for _ in range(args.repeats):
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             model(images, K, poses, dmin, dmax, sparse_depth=sparse)
             times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu)
     seconds = statistics.median(times) if times else first
     flops = int(counter.get_total_flops())
     return {
@@ -190,6 +207,10 @@ def worker(args: argparse.Namespace) -> dict:
         "seconds_all": times,
         "seconds_min": min(times) if times else first,
         "seconds_first_with_counter": first,
+        # CPU time of all threads: on a machine shared with other jobs, wall time is inflated by
+        # waiting for a core, CPU time much less so (it still includes the other jobs' cache pressure).
+        "cpu_seconds": statistics.median(cpu_times) if cpu_times else float("nan"),
+        "load_average": os.getloadavg()[0],
         "flops": flops,
         "gflops_per_s": flops / seconds / 1e9,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -218,6 +239,8 @@ def run_config(resolution: str, num_views: int, args: argparse.Namespace) -> dic
     ]
     if args.checkpoint:
         cmd += ["--checkpoint", str(args.checkpoint)]
+    if args.conv_dtype:
+        cmd += ["--conv_dtype", args.conv_dtype]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
     except subprocess.TimeoutExpired:
@@ -239,17 +262,20 @@ def run_config(resolution: str, num_views: int, args: argparse.Namespace) -> dic
 
 
 def format_rows(results: list[dict], peak_gflops: float) -> str:
-    header = ["resolution", "N", "s/image", "peak RSS MB", "GFLOP/forward", "GFLOP/s", "% of peak"]
+    header = ["resolution", "N", "s/image", "CPU s", "load", "peak RSS MB", "GFLOP/forward", "GFLOP/s"]
+    header.append("% of peak")
     rows = []
     for r in results:
         if "error" in r:
-            rows.append([r["resolution"], str(r["num_views"]), "-", "-", "-", "-", r["error"][:60]])
+            rows.append([r["resolution"], str(r["num_views"]), "-", "-", "-", "-", "-", "-", r["error"][:60]])
             continue
         rows.append(
             [
                 r["resolution"],
                 str(r["num_views"]),
                 f"{r['seconds']:.2f}",
+                f"{r.get('cpu_seconds', float('nan')):.2f}",
+                f"{r.get('load_average', float('nan')):.1f}",
                 f"{r['peak_rss_mb']:.0f}",
                 f"{r['flops'] / 1e9:.1f}",
                 f"{r['gflops_per_s']:.1f}",
@@ -274,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resolution_sweep_n", type=int, default=5, help="N of the sweep over resolutions")
     p.add_argument("--checkpoint", default=None, help="model checkpoint; default: random weights")
     p.add_argument("--threads", type=int, default=0, help="torch threads; 0 = torch's default")
+    p.add_argument(
+        "--conv_dtype", choices=["float32", "bfloat16"], default=None, help="override the model's conv_dtype"
+    )
     p.add_argument("--repeats", type=int, default=2, help="timed forward passes after the warm-up")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per configuration")
     p.add_argument("--fma_units", type=int, default=None, help="FMA units per core (default: 2, assumed)")

@@ -37,3 +37,7 @@ class DistributedError(ColmapPVSError):
 
 class OutputError(ColmapPVSError, OSError):
     """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""
+
+
+class MemoryBudgetError(ColmapPVSError, MemoryError):
+    """A forward pass whose estimated peak memory exceeds the budget; the message names a size that fits."""

@@ -37,6 +37,7 @@ from .io.maps import (
     write_normal_map,
 )
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
+from .model.runtime import check_memory_budget
 from .normals import depth_to_normals
 from .types import Image, SparseModel
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
@@ -244,6 +245,19 @@ def _sparse_depth_map(
     return sparse_depth_map(model.points.xyz[rows], K, image.cam_from_world, height, width)
 
 
+def drop_outlier_hints(sparse: np.ndarray, depth_range: tuple[float, float], config) -> np.ndarray:
+    """Zero the hints of ``sparse`` ``[H, W]`` (in place) that are depth outliers.
+
+    A hint is an outlier when it lies more than ``config.depth_outlier_min_factor`` (3) outside the
+    image's depth range: ``z < dmin / f`` or ``z > dmax * f``. Hints just outside the range are real
+    surfaces more often than not (the range is the 1st-99th percentile, and near walls in indoor
+    video lie below it): dropping every hint outside it raised hololens-dev MAE from 212 to 219 mm.
+    """
+    f = config.depth_outlier_min_factor
+    sparse[(sparse < depth_range[0] / f) | (sparse > depth_range[1] * f)] = 0.0
+    return sparse
+
+
 def _prepare_views(ws: Workspace, model: SparseModel, names: list[str], max_image_size: int):
     """Load the reference and sources, resized to the reference's inference size.
 
@@ -418,9 +432,11 @@ def process_reference(
     h, w = images.shape[-2:]
     ref = model_sparse.image_by_name(name)
     sparse = _sparse_depth_map(model_sparse, ref, Ks[0], h, w, ctx.id_order)
-    sparse[(sparse < entry.depth_range[0]) | (sparse > entry.depth_range[1])] = 0.0  # issue 11: outliers
+    drop_outlier_hints(sparse, entry.depth_range, ctx.selection.config)
     loaded = time.perf_counter()
     try:
+        if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
+            check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
         depth, conf, vis = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse, ctx.device)
     except (RuntimeError, MemoryError) as exc:
         if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):

@@ -40,20 +40,55 @@ def group_correlation(
         raise ShapeError(
             f"group_correlation: ref {tuple(ref.shape)} does not match warped {tuple(warped.shape)}"
         )
+    r = correlation_reference(ref, groups, pixel_weight)
+    wv = warped.contiguous().view(B, groups, C // groups, D, h, w)
+    if accumulate is None and C == groups and not torch.is_grad_enabled():
+        return wv[:, :, 0].mul_(r[:, :, 0]).contiguous()
+    if accumulate is None:
+        accumulate = wv[:, :, 0] * r[:, :, 0]
+        return _correlate(r, wv, accumulate, start=1)
+    return _correlate(r, wv, accumulate, start=0)
+
+
+def correlation_reference(
+    ref: torch.Tensor, groups: int, pixel_weight: torch.Tensor | float | None = None
+) -> torch.Tensor:
+    """The reference side of :func:`group_correlation`: ``[B, C, h, w] -> [B, G, C/G, 1, h, w]``
+    (contiguous), ``ref * pixel_weight / (C/G)``."""
+    B, C, h, w = ref.shape
+    if C % groups:
+        raise ShapeError(f"group_correlation: {groups} groups do not divide {C} channels")
     per = C // groups
     scale = ref * (1.0 / per) if pixel_weight is None else ref * (pixel_weight * (1.0 / per))
     # Contiguous operands: the broadcast then runs over outer dimensions only (fast on CPU).
-    r = scale.contiguous().view(B, groups, per, 1, h, w)
-    wv = warped.contiguous().view(B, groups, per, D, h, w)
-    if accumulate is not None:
-        out = accumulate
-        start = 0
-    elif per == 1 and not torch.is_grad_enabled():
-        return wv[:, :, 0].mul_(r[:, :, 0]).contiguous()
-    else:
-        out = wv[:, :, 0] * r[:, :, 0]
-        start = 1
-    for j in range(start, per):
+    return scale.contiguous().view(B, groups, per, 1, h, w)
+
+
+def correlate_into(
+    r: torch.Tensor, warped: torch.Tensor, out: torch.Tensor, *, accumulate: bool
+) -> torch.Tensor:
+    """Write (or, with ``accumulate``, add) the group-wise correlation into ``out`` ``[B, G, D, h, w]``
+    (any strides, e.g. a slice of planes of a larger volume) and return it.
+
+    ``r`` ``[B, G, P, 1, h, w]`` from :func:`correlation_reference`, ``warped`` ``[B, G * P, D, h, w]``.
+    """
+    B, G, P, _, h, w = r.shape
+    D = warped.shape[2]
+    if warped.shape != (B, G * P, D, h, w) or out.shape != (B, G, D, h, w):
+        raise ShapeError(
+            f"correlate_into: reference {tuple(r.shape)}, warped {tuple(warped.shape)}, "
+            f"out {tuple(out.shape)}"
+        )
+    wv = warped.contiguous().view(B, G, P, D, h, w)
+    if accumulate:
+        return _correlate(r, wv, out, start=0)
+    torch.mul(wv[:, :, 0], r[:, :, 0], out=out)
+    return _correlate(r, wv, out, start=1)
+
+
+def _correlate(r: torch.Tensor, wv: torch.Tensor, out: torch.Tensor, start: int) -> torch.Tensor:
+    """``out += sum_{j >= start} wv[:, :, j] * r[:, :, j]`` in place (``wv`` ``[B, G, P, D, h, w]``)."""
+    for j in range(start, wv.shape[2]):
         out.addcmul_(wv[:, :, j], r[:, :, j])
     return out
 

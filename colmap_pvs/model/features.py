@@ -45,6 +45,24 @@ class FeatureNet(nn.Module):
         self.out2 = Conv(c0, f2, dims=2, kernel=3)
 
     def forward(self, x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:
+        if torch.is_grad_enabled() or x.shape[0] == 1:
+            return self._forward(x, levels)
+        # Inference: one image at a time (the full-resolution temporaries of one image only),
+        # written into the channels-last outputs.
+        outs: list[torch.Tensor] = []
+        for i in range(x.shape[0]):
+            one = self._forward(x[i : i + 1], levels)
+            if not outs:
+                shape = lambda t: (x.shape[0], *t.shape[1:])  # noqa: E731
+                outs = [
+                    torch.empty(shape(t), dtype=t.dtype, device=t.device, memory_format=torch.channels_last)
+                    for t in one
+                ]
+            for buf, t in zip(outs, one, strict=True):
+                buf[i : i + 1].copy_(t)
+        return outs
+
+    def _forward(self, x: torch.Tensor, levels: int) -> list[torch.Tensor]:
         x = x.contiguous(memory_format=torch.channels_last)
         e0 = self.enc0(x)
         e1 = self.enc1(e0)

@@ -15,9 +15,13 @@ In eval mode the batch norms are folded into the convolution weights on the fly.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .runtime import chunk_bytes
 
 _NATIVE_LIMIT = 20480  # PyTorch's "native is faster" threshold on B*C*D*H (ConvUtils.h)
 
@@ -27,6 +31,16 @@ _HAS_MKLDNN_CONV = hasattr(torch, "mkldnn_convolution")
 
 def _onednn_ok(x: torch.Tensor) -> bool:
     return x.device.type == "cpu" and x.dtype == torch.float32 and torch.backends.mkldnn.is_available()
+
+
+@functools.cache
+def _onednn_low_precision_ok(dtype: torch.dtype) -> bool:
+    """Whether oneDNN has native ``dtype`` (bfloat16) convolutions on this CPU (else PyTorch's own
+    kernels are used, slower but available everywhere)."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    check = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    return dtype == torch.bfloat16 and check is not None and bool(check())
 
 
 def _needs_group_trick(x: torch.Tensor) -> bool:
@@ -43,9 +57,23 @@ def conv_nd(
     bias: torch.Tensor | None,
     stride: int = 1,
     padding: int = 1,
+    compute_dtype: torch.dtype | None = None,
 ) -> torch.Tensor:
-    """Dense 2D/3D convolution (``weight`` ``[Cout, Cin, k...]``) that always takes the oneDNN path on CPU."""
+    """Dense 2D/3D convolution (``weight`` ``[Cout, Cin, k...]``) that always takes the oneDNN path on CPU.
+
+    With ``compute_dtype`` (e.g. ``torch.bfloat16``) and no autograd, input, weight and bias are cast to it
+    and the output has that dtype.
+    """
     conv = F.conv3d if x.dim() == 5 else F.conv2d
+    if compute_dtype is not None and not torch.is_grad_enabled() and x.is_floating_point():
+        x, weight = x.to(compute_dtype), weight.to(compute_dtype)
+        bias = None if bias is None else bias.to(compute_dtype)
+        if x.device.type == "cpu" and _HAS_MKLDNN_CONV and _onednn_low_precision_ok(x.dtype):
+            n = x.dim() - 2
+            return torch.mkldnn_convolution(x, weight, bias, [padding] * n, [stride] * n, [1] * n, 1)
+        return conv(x, weight, bias, stride, padding)
+    if x.dtype != weight.dtype:  # a low-precision activation reaching a float32 layer
+        x = x.to(weight.dtype)
     if not torch.is_grad_enabled() and _HAS_MKLDNN_CONV and _onednn_ok(x):
         n = x.dim() - 2
         return torch.mkldnn_convolution(x, weight, bias, [padding] * n, [stride] * n, [1] * n, 1)
@@ -83,6 +111,9 @@ class ConvBnReLU(nn.Module):
         self.weight = nn.Parameter(torch.empty(cout, cin, *([kernel] * dims)))
         nn.init.kaiming_uniform_(self.weight, a=5**0.5)
         self.bn = nn.BatchNorm3d(cout) if dims == 3 else nn.BatchNorm2d(cout)
+        #: Inference dtype of the convolution and of its output (``None`` = the weights'), see
+        #: :func:`set_compute_dtype`. Not a parameter, not saved.
+        self.compute_dtype: torch.dtype | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.training or not self.bn.track_running_stats or self.bn.running_var is None:
@@ -94,7 +125,7 @@ class ConvBnReLU(nn.Module):
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
         bias = bn.bias - bn.running_mean * scale
         w = self.weight * scale.view(-1, *([1] * (self.weight.dim() - 1)))
-        y = conv_nd(x, w, bias, self.stride, self.padding)
+        y = conv_nd(x, w, bias, self.stride, self.padding, self.compute_dtype)
         return F.relu_(y) if self.relu else y
 
 
@@ -112,6 +143,38 @@ class Up3d(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.interpolate(self.proj(x), scale_factor=2.0, mode="trilinear", align_corners=False)
 
+    def add_to(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """``self(x) + skip``; without autograd computed into ``skip`` in place, a few rows at a time."""
+        if torch.is_grad_enabled():
+            return self(x) + skip
+        return upsample2_add_(self.proj(x), skip)
+
+
+def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """``out += trilinear_x2(x)`` in place (``align_corners=False``), for ``x`` ``[B, C, D, h, w]`` and
+    ``out`` ``[B, C, 2D, 2h, 2w]``; returns ``out``.
+
+    Works on bands of rows: each band of input rows ``[a, b)`` is upsampled with one row of context on
+    either side (what the interpolation reads; at the image border the band is clamped exactly like the
+    full interpolation), and the rows ``[2a, 2b)`` are added into ``out``. The same numbers as one
+    ``F.interpolate`` followed by an addition, without the full-size temporaries.
+    """
+    B, C, D, h, w = x.shape
+    if out.shape != (B, C, 2 * D, 2 * h, 2 * w):
+        raise ValueError(f"upsample2_add_: out {tuple(out.shape)} is not twice x {tuple(x.shape)}")
+    row_bytes = B * C * 4 * D * w * x.element_size()  # one input row becomes 2 x (2D x 2w) outputs
+    rows = max(1, min(h, chunk_bytes() // max(1, row_bytes) - 2))
+    for a in range(0, h, rows):
+        b = min(h, a + rows)
+        lo, hi = max(0, a - 1), min(h, b + 1)
+        # A contiguous copy of the (small) input band: interpolation of a strided view is ~2x slower.
+        band = x[:, :, :, lo:hi].contiguous(memory_format=_memory_format(x))
+        up = F.interpolate(band, scale_factor=2.0, mode="trilinear", align_corners=False)
+        off = 2 * (a - lo)
+        out[:, :, :, 2 * a : 2 * b].add_(up[:, :, :, off : off + 2 * (b - a)])
+        del up
+    return out
+
 
 class Conv(nn.Module):
     """Plain 2D/3D convolution with bias (used for 1-channel output heads)."""
@@ -122,9 +185,23 @@ class Conv(nn.Module):
         self.weight = nn.Parameter(torch.empty(cout, cin, *([kernel] * dims)))
         self.bias = nn.Parameter(torch.zeros(cout))
         nn.init.kaiming_uniform_(self.weight, a=5**0.5)
+        #: Inference dtype of the convolution (the output is cast back to the weights' dtype).
+        self.compute_dtype: torch.dtype | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return conv_nd(x, self.weight, self.bias, 1, self.padding)
+        y = conv_nd(x, self.weight, self.bias, 1, self.padding, self.compute_dtype)
+        return y if y.dtype == self.weight.dtype else y.to(self.weight.dtype)
+
+
+def set_compute_dtype(module: nn.Module, dtype: torch.dtype | None) -> None:
+    """Set the inference convolution dtype of every :class:`ConvBnReLU` and :class:`Conv` in ``module``.
+
+    Hidden activations (``ConvBnReLU`` outputs) then stay in ``dtype``; ``Conv`` layers (output heads,
+    feature outputs) return the weights' dtype (float32). Autograd (training) ignores it.
+    """
+    for m in module.modules():
+        if isinstance(m, (ConvBnReLU, Conv)):
+            m.compute_dtype = dtype
 
 
 def to_volume_format(x: torch.Tensor, channels_last: bool) -> torch.Tensor:
@@ -132,3 +209,8 @@ def to_volume_format(x: torch.Tensor, channels_last: bool) -> torch.Tensor:
     if channels_last and x.dim() == 5:
         return x.contiguous(memory_format=torch.channels_last_3d)
     return x
+
+
+def _memory_format(x: torch.Tensor) -> torch.memory_format:
+    cl = x.is_contiguous(memory_format=torch.channels_last_3d)
+    return torch.channels_last_3d if cl else torch.contiguous_format

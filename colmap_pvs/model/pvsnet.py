@@ -36,13 +36,23 @@ from .cascade import (
     regress_inverse_depth,
 )
 from .config import NETWORK_STRIDE, PVSNetConfig
-from .cost import densify_inverse_depth, downsample_sparse_depth, group_correlation, guidance_weights
+from .cost import (
+    correlate_into,
+    correlation_reference,
+    densify_inverse_depth,
+    downsample_sparse_depth,
+    group_correlation,
+    guidance_weights,
+)
 from .features import FeatureNet, normalized_intensity_channels
-from .layers import to_volume_format
+from .layers import set_compute_dtype, to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
+from .runtime import plane_chunk
 from .visibility import CostAccumulator, VisibilityNet, normalized_weights, truncate_visibility
 from .warping import (
+    grid_from_rays,
     homography_grid,
+    homography_rays,
     hypothesis_depths,
     plane_range,
     relative_pose,
@@ -117,6 +127,7 @@ class PVSNet(nn.Module):
             StageRegularizer(cfg.groups_per_stage[k], cfg.stage_channels[k - 1])
             for k in range(1, cfg.num_stages)
         )
+        set_compute_dtype(self, torch.bfloat16 if cfg.conv_dtype == "bfloat16" else None)
 
     # ------------------------------------------------------------------ checks
 
@@ -356,6 +367,10 @@ class PVSNet(nn.Module):
 
         With ``pixel_weight`` ``[B, 1, h, w]`` the cost is weighted; with ``accumulate`` it is added to it.
         """
+        if not torch.is_grad_enabled():
+            return self._two_view_cost_chunked(
+                feats, K, cam_from_world, src, depths, stage, pixel_weight, accumulate
+            )
         cfg = self.config
         _, _, C, h, w = feats.shape
         D = depths.shape[1]
@@ -372,6 +387,50 @@ class PVSNet(nn.Module):
             cost = torch.cat([cost, extra], 1)
             return cost if accumulate is None else accumulate + cost
         return group_correlation(ref, warped, G, pixel_weight=pixel_weight, accumulate=accumulate)
+
+    def _two_view_cost_chunked(
+        self,
+        feats: torch.Tensor,
+        K: torch.Tensor,
+        cam_from_world: torch.Tensor,
+        src: int,
+        depths: torch.Tensor,
+        stage: int,
+        pixel_weight: torch.Tensor | float | None,
+        accumulate: torch.Tensor | None,
+    ) -> torch.Tensor:
+        """Inference form of :meth:`_two_view_cost`: the same volume, warped and correlated a few planes
+        at a time (``runtime.plane_chunk``), written straight into the output (or ``accumulate``).
+
+        Bounds the temporaries (grid, warped features) to ``runtime.CHUNK_BYTES`` whatever the image
+        size, and keeps them small enough to be recycled by the allocator instead of page-faulted in.
+        """
+        cfg = self.config
+        B, _, C, h, w = feats.shape
+        D = depths.shape[1]
+        G = cfg.groups_per_stage[stage]
+        n = cfg.normalized_channels if stage == 0 else 0
+        learned = C - n
+        out = accumulate
+        if out is None:
+            out = torch.empty(B, G + (1 if n > 0 else 0), D, h, w, dtype=feats.dtype, device=feats.device)
+        rays, b = homography_rays(K[:, 0], K[:, src], relative_pose(cam_from_world, src), h, w, feats.dtype)
+        ref, source = feats[:, 0], feats[:, src]
+        # The reference side of the correlation, weighted and scaled once per source.
+        r_learned = correlation_reference(ref[:, :learned], G, pixel_weight)
+        r_extra = correlation_reference(ref[:, learned:], 1, pixel_weight) if n > 0 else None
+        step = plane_chunk(B * C * h * w * feats.element_size(), D)
+        add = accumulate is not None
+        for d0 in range(0, D, step):
+            d1 = min(D, d0 + step)
+            grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
+            warped = warp_features(source, grid, d1 - d0)
+            del grid
+            correlate_into(r_learned, warped[:, :learned], out[:, :G, d0:d1], accumulate=add)
+            if r_extra is not None:
+                correlate_into(r_extra, warped[:, learned:], out[:, G:, d0:d1], accumulate=add)
+            del warped
+        return out
 
     def _stage_weights(
         self, vis_maps: list[torch.Tensor], size: tuple[int, int], num_sources: int

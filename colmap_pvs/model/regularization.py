@@ -35,9 +35,9 @@ class UNet3D(nn.Module):
         x0 = self.conv0(x)
         x1 = self.conv1(self.down1(x0))
         x2 = self.conv2(self.down2(x1))
-        y1 = self.up1(x2) + x1
+        y1 = self.up1.add_to(x2, x1)
         del x1, x2
-        return self.up0(y1) + x0
+        return self.up0.add_to(y1, x0)
 
 
 class ResNet3D(nn.Module):
@@ -54,7 +54,7 @@ class ResNet3D(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.inp(x)
         for a, b in self.blocks:
-            x = F.relu(b(a(x)) + x)
+            x = F.relu(b(a(x)) + x) if torch.is_grad_enabled() else b(a(x)).add_(x).relu_()
         return x
 
 
@@ -78,10 +78,10 @@ class CoarseRegularizer(nn.Module):
     def forward(self, cost: torch.Tensor) -> list[torch.Tensor]:
         f0 = self.resnet(cost)
         logits = [self.head0(f0).squeeze(1)]
-        f1 = self.unet1(f0) + f0
+        f1 = _add(self.unet1(f0), f0)
         logits.append(self.head1(f1).squeeze(1))
         del f0
-        f2 = self.unet2(f1) + f1
+        f2 = _add(self.unet2(f1), f1)
         del f1
         logits.append(self.head2(f2).squeeze(1))
         return logits
@@ -100,3 +100,8 @@ class StageRegularizer(nn.Module):
 
     def forward(self, cost: torch.Tensor) -> torch.Tensor:
         return self.head(self.unet(cost)).squeeze(1)
+
+
+def _add(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``y + x``; in place into ``y`` (a fresh network output) without autograd."""
+    return y + x if torch.is_grad_enabled() else y.add_(x)

@@ -71,9 +71,22 @@ def homography_grid(
         stored as ``(2u/width - 1, 2v/height - 1)``. Points behind the source camera get ``-2``
         (outside the map, so they sample zeros).
     """
-    B = K_ref.shape[0]
-    dtype, device = depths.dtype, depths.device
-    D = depths.shape[1]
+    rays, b = homography_rays(K_ref, K_src, src_from_ref, height, width, depths.dtype)
+    return grid_from_rays(rays, b, depths, height, width)
+
+
+def homography_rays(
+    K_ref: torch.Tensor,
+    K_src: torch.Tensor,
+    src_from_ref: torch.Tensor,
+    height: int,
+    width: int,
+    dtype: torch.dtype,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth-independent part of :func:`homography_grid`: ``rays = A [u, v, 1]^T`` ``[B, 3, hw]`` and
+    ``b`` ``[B, 3, 1]``, with ``p = depth * rays + b`` the source projection (``A = K_src R K_ref^-1``,
+    ``b = K_src t``)."""
+    device = K_ref.device
     # Compose the per-batch 3x3 / 3x1 maps in float64 for accuracy.
     K_ref64, K_src64, T64 = K_ref.double(), K_src.double(), src_from_ref.double()
     A = (K_src64 @ T64[:, :3, :3] @ torch.linalg.inv(K_ref64)).to(dtype)  # [B, 3, 3]
@@ -84,7 +97,15 @@ def homography_grid(
         indexing="ij",
     )
     pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)], 0)  # [3, hw]
-    rays = A @ pix  # [B, 3, hw]
+    return A @ pix, b
+
+
+def grid_from_rays(
+    rays: torch.Tensor, b: torch.Tensor, depths: torch.Tensor, height: int, width: int
+) -> torch.Tensor:
+    """:func:`homography_grid` from :func:`homography_rays` (reused across chunks of depths)."""
+    B, D = depths.shape[:2]
+    dtype, device = depths.dtype, depths.device
     if depths.dim() == 2:
         d = depths.view(B, D, 1)
     else:

@@ -1,0 +1,103 @@
+"""Quick depth check on ``hololens-dev``: one N, the best sources (and optionally 2 far-away ones).
+
+The N part of ``benchmarks/real_depth.py`` (same COLMAP model cache, same references, same
+evaluation), for comparing checkpoints and stereo settings in a few minutes::
+
+    python benchmarks/hololens_quick.py --checkpoint colmap_pvs/weights/pvsnet_default.pt --tag base
+    python benchmarks/hololens_quick.py --tag tta30 --stereo adapt_steps=30
+    python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag full   # the 60 refs
+
+``--stereo key=value`` sets any ``StereoConfig`` field. Prints coverage, MAE, AbsRel and the % of
+pixels within 1 / 2 / 5 % for the photometric and (when written) the geometric maps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import real_depth as rd
+
+from colmap_pvs.config import config_from_dict
+from colmap_pvs.io.sparse import read_sparse_model
+from colmap_pvs.io.workspace import write_patch_match_cfg
+from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.views import ViewSelectionConfig, select_views
+
+
+def _value(text: str):
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", type=Path, default=rd.DEFAULT_CHECKPOINT)
+    p.add_argument("--tag", default="quick", help="names the workspaces under WORK/quick")
+    p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
+    p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
+    p.add_argument("--stride", type=int, default=9)
+    p.add_argument("--offset", type=int, default=0)
+    p.add_argument("--max_image_size", type=int, default=540)
+    p.add_argument("--num_views", type=int, default=5)
+    p.add_argument("--disturbed", action="store_true", help="also: 2 of the sources replaced by far frames")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
+    a = p.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not (a.data / "poses.txt").is_file():
+        print(f"hololens-dev data not found at {a.data}; nothing to do")
+        return 2
+    work = a.work_dir.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    sparse = rd.build_model(a.data, work, a.threads)
+    model = read_sparse_model(sparse)
+    names = sorted(model.image_ids_by_name)
+    sel = select_views(model, ViewSelectionConfig(num_views=a.num_views))
+    refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
+    settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in refs})]
+    if a.disturbed:
+        far = {}
+        for r in refs:
+            ref = sel.references[r]
+            row = dict(zip(ref.ranked_names, ref.ranked_scores, strict=True))
+            far[r] = list(ref.ranked_names)[: a.num_views - 3] + rd.far_sources(names.index(r), names, row, 2)
+        settings.append(("disturbed", far))
+    extra = dict(kv.split("=", 1) for kv in a.stereo)
+    for label, sources in settings:
+        ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse)
+        write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
+        fields = {
+            "workspace_path": str(ws),
+            "num_views": a.num_views,
+            "max_image_size": a.max_image_size,
+            "checkpoint": str(a.checkpoint.resolve()),
+            "threads": a.threads,
+            "overwrite": True,
+            "device": "cpu",
+            **{k: _value(v) for k, v in extra.items()},
+        }
+        start = time.perf_counter()
+        result = run_stereo(config_from_dict(StereoConfig, fields))
+        wall = time.perf_counter() - start
+        metrics = rd.evaluate_against_gt(ws, a.data, refs)
+        for kind, m in metrics.items() if isinstance(metrics, dict) else [("maps", metrics)]:
+            s = m.pooled
+            under = " / ".join(f"{s.rel_under_pct[t]:.1f}" for t in sorted(s.rel_under_pct))
+            print(
+                f"{a.tag} {label} {kind}: {len(result.processed)}/{len(refs)} refs, coverage "
+                f"{s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under "
+                f"{sorted(s.rel_under_pct)}: {under}; {wall:.0f} s wall "
+                f"(adaptation {result.adapt_seconds:.0f} s)",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
