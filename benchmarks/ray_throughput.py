@@ -92,7 +92,8 @@ def _child(args: argparse.Namespace) -> None:
         result = run_stereo(config)
         out[run] = {"wall": time.perf_counter() - start + imported, "computed": len(result.processed),
                     "done": len(result.already_done), "skipped": len(result.skipped),
-                    "s_per_image": result.seconds_per_image}
+                    # compute time of one image in one process (Ray: per task on one worker)
+                    "s_per_image": getattr(result, "seconds_per_task", result.seconds_per_image)}
     stop.set()
     sampler.join()
     out["peak_rss_mb"] = (peak[0] if args.backend == "ray"
