@@ -31,6 +31,10 @@ class ShapeError(ColmapPVSError, ValueError):
     """A tensor or array whose shape does not match the documented one."""
 
 
+class DistributedError(ColmapPVSError):
+    """A scale-out (Ray) failure: Ray missing, no workers, or a reference whose workers kept dying."""
+
+
 class OutputError(ColmapPVSError, OSError):
     """An output that cannot be written: read-only folder, full disk, ... (nothing half-written is left)."""
 

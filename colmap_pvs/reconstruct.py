@@ -90,6 +90,12 @@ class ReconstructConfig:
     checkpoint: Path | None = field(
         default=None, metadata={"help": "stereo: model checkpoint; default: the shipped checkpoint"}
     )
+    backend: Literal["local", "ray"] = field(
+        default="local", metadata={"help": "stereo: local, or ray (one task per image on a Ray cluster)"}
+    )
+    ray_address: str = field(default="", metadata={"help": "stereo: Ray address; empty starts a local Ray"})
+    ray_workers: int = field(default=0, metadata={"help": "stereo: Ray workers; 0: fill the CPUs"})
+    ray_worker_threads: int = field(default=1, metadata={"help": "stereo: torch threads per Ray worker"})
     fusion_method: Literal["pvs", "colmap"] = field(default="pvs", metadata={"help": "fusion method"})
     previews: bool = field(
         default=True,
@@ -564,6 +570,10 @@ def _reconstruct(
                 checkpoint=config.checkpoint,
                 previews=config.previews,
                 overwrite="stereo" in prog.overwrite,
+                backend=config.backend,
+                ray_address=config.ray_address,
+                ray_workers=config.ray_workers,
+                ray_worker_threads=config.ray_worker_threads,
             )
         )
         result.stereo_skipped = dict(st.skipped)

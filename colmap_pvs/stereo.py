@@ -138,6 +138,25 @@ class StereoConfig:
     )
     adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
     adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
+    # Scale-out (colmap_pvs.distributed; README "Scale out on Ray").
+    backend: Literal["local", "ray"] = field(
+        default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
+    )
+    ray_address: str = field(
+        default="", metadata={"help": "ray: empty starts a local Ray; 'auto' or HOST:PORT joins a cluster"}
+    )
+    ray_workers: int = field(default=0, metadata={"help": "ray: worker actors; 0: fill the CPUs"})
+    ray_worker_threads: int = field(default=1, metadata={"help": "ray: torch threads (and CPUs) per worker"})
+    ray_worker_memory: float = field(
+        default=0.0, metadata={"help": "ray: GiB of memory Ray reserves per worker when placing it; 0: none"}
+    )
+    ray_max_retries: int = field(
+        default=3, metadata={"help": "ray: times a reference is retried after its worker died"}
+    )
+    ray_task_timeout: float = field(
+        default=0.0, metadata={"help": "ray: seconds after which a reference's worker is killed and the "
+                               "reference retried; 0: no limit"}
+    )
     geom_consistency: bool = field(
         default=True,
         metadata={"help": "run the geometric pass (writes *.geometric.bin); off: photometric maps only "
@@ -186,6 +205,9 @@ class StereoConfig:
         check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
         check_range("geom_min_visibility", self.geom_min_visibility, low=0.0, high=1.0)
         check_range("geom_num_sources", self.geom_num_sources, low=0)
+        for name, low in (("ray_workers", 0), ("ray_worker_threads", 1), ("ray_worker_memory", 0.0),
+                          ("ray_max_retries", 0), ("ray_task_timeout", 0.0)):
+            check_range(name, getattr(self, name), low=low)
         if 0 < self.max_image_size < 16:
             raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
         if self.geom_min_consistent < 1:
@@ -861,7 +883,12 @@ def run_stereo(config: StereoConfig) -> StereoResult:
 
     Resumable per pass: maps that exist with matching provenance are kept unless ``config.overwrite``.
     Images without usable sources or sparse points are skipped with a warning.
+    ``config.backend == "ray"`` runs the same passes on a Ray cluster (:mod:`colmap_pvs.distributed`).
     """
+    if config.backend == "ray":
+        from .distributed import run_stereo_ray
+
+        return run_stereo_ray(config)
     wall = time.perf_counter()
     ctx = prepare_stereo(config, background_io=True)
     ws = ctx.workspace

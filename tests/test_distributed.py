@@ -1,0 +1,321 @@
+"""``stereo --backend ray``: a local 2-CPU Ray cluster started and stopped by the tests.
+
+Pinned here: Ray maps are byte-identical to a local run with the same threads, a rerun resumes, a
+worker killed with ``os.kill`` mid-task is replaced and its reference retried elsewhere (nothing
+half-written left), bounded retries, a clear error when workers cannot read the workspace, and the
+same backend for ``reconstruct``'s stereo step. The task graph and the temp-file cleanup are tested
+without Ray.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import types
+from pathlib import Path
+
+import pytest
+from colmap_pvs.cli.main import main
+from conftest import make_tiny_checkpoint
+
+from colmap_pvs.distributed import TaskGraph, stereo_passes
+from colmap_pvs.errors import DistributedError
+from colmap_pvs.io.workspace import read_fusion_cfg
+from colmap_pvs.reconstruct import ReconstructConfig
+from colmap_pvs.stereo import CONFIG_FILENAME, StereoConfig, run_stereo
+
+TEST_SECONDS = 120  # no test of this module may run longer (SIGALRM)
+
+
+# --------------------------------------------------------------------------- without Ray
+
+
+def test_task_graph_orders_passes_by_sources():
+    refs = ["a", "b", "c", "d"]
+    sources = {"a": ["b"], "b": ["a", "x"], "c": None, "d": ["c"]}  # x: not a reference; c: unknown
+    graph = TaskGraph(refs, ("photometric", "geometric"), sources)
+    assert len(graph.tasks) == 8 and graph.remaining == 8
+    order = [graph.pop() for _ in range(4)]
+    assert order == [(n, "photometric") for n in refs] and graph.pop() is None
+    graph.finish(("a", "photometric"))
+    assert graph.pop() is None  # geometric a needs photometric b too
+    graph.finish(("b", "photometric"))
+    assert {graph.pop(), graph.pop()} == {("a", "geometric"), ("b", "geometric")}
+    graph.finish(("d", "photometric"))
+    assert graph.pop() is None  # d needs c; c needs everything
+    graph.finish(("c", "photometric"))
+    ready = [graph.pop(), graph.pop()]
+    assert sorted(ready) == [("c", "geometric"), ("d", "geometric")] and graph.pop() is None
+    graph.requeue(("c", "geometric"))  # lost with its worker: first in line again
+    assert graph.pop() == ("c", "geometric")
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=True)) == ("photometric", "geometric")
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=False)) == ("photometric",)
+
+
+def test_task_graph_auxiliary_images_get_the_first_pass_only():
+    graph = TaskGraph(["a", "b"], ("photometric", "geometric"), {"a": ["s"], "b": ["a"]}, ["s"])
+    assert graph.tasks == [("a", "photometric"), ("b", "photometric"), ("s", "photometric"),
+                           ("a", "geometric"), ("b", "geometric")]
+    for _ in range(3):
+        graph.pop()
+    graph.finish(("a", "photometric"))
+    graph.finish(("b", "photometric"))
+    assert graph.pop() == ("b", "geometric") and graph.pop() is None  # a waits for its source s
+    graph.finish(("s", "photometric"))
+    assert graph.pop() == ("a", "geometric")
+    graph.finish(("a", "geometric"))
+    graph.finish(("b", "geometric"))
+    assert graph.remaining == 0
+
+
+def test_ray_flags_in_stereo_and_reconstruct():
+    stereo, rec = StereoConfig(workspace_path=Path("x")), ReconstructConfig(image_path=Path("i"),
+                                                                            workspace_path=Path("w"))
+    for name in ("backend", "ray_address", "ray_workers", "ray_worker_threads"):
+        assert getattr(rec, name) == getattr(stereo, name)
+    assert stereo.backend == "local"
+    with pytest.raises(SystemExit):
+        main(["stereo", "--workspace_path", "x", "--backend", "spark"])
+
+
+# --------------------------------------------------------------------------- with a local Ray
+
+
+@pytest.fixture(autouse=True)
+def _deadline():
+    """Fail (instead of hanging CI) when a test runs over TEST_SECONDS."""
+
+    def expire(signum, frame):
+        raise TimeoutError(f"test ran over {TEST_SECONDS} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(TEST_SECONDS)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A local Ray with 2 CPUs and a small object store for this module; always shut down."""
+    ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # ray.init replaces them
+    ray.init(address="local", num_cpus=2, object_store_memory=80 * 1024**2, include_dashboard=False,
+             logging_level="warning")
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """An analytic workspace (8 views, no maps), a tiny checkpoint and the local run's maps."""
+    from scenes import make_analytic_workspace
+
+    base = tmp_path_factory.mktemp("ray")
+    root = base / "ws"
+    make_analytic_workspace(root, n_views=8, width=240, height=180, focal=220.0, write_maps=False)
+    (root / "stereo" / "fusion.cfg").unlink(missing_ok=True)
+    ckpt = make_tiny_checkpoint(base / "tiny.pt")
+    local = base / "local"
+    shutil.copytree(root, local)
+    import torch
+
+    threads = torch.get_num_threads()
+    try:
+        result = run_stereo(_config(local, ckpt, backend="local", threads=1))
+    finally:
+        torch.set_num_threads(threads)
+    assert len(result.processed) == 8
+    return {"root": root, "ckpt": ckpt, "local": local}
+
+
+def _config(ws: Path, ckpt: Path, **kw) -> StereoConfig:
+    base = dict(workspace_path=ws, checkpoint=ckpt, max_image_size=240, num_views=3, min_confidence=0.0,
+                backend="ray", ray_workers=2, ray_worker_threads=1)
+    return StereoConfig(**{**base, **kw})
+
+
+def _copy(scene, tmp_path) -> Path:
+    ws = tmp_path / "ws"
+    shutil.copytree(scene["root"], ws)
+    return ws
+
+
+def _assert_same_maps(ws: Path, local: Path) -> None:
+    """Every ``.bin`` map under ``stereo/`` (depth, normal, confidence, ... of every pass) is
+    byte-identical to the local run's, the same files exist, and no temporary file is left."""
+    files = sorted(p.relative_to(local / "stereo") for p in (local / "stereo").rglob("*.bin"))
+    assert len(list((local / "stereo" / "depth_maps").glob("*.geometric.bin"))) == 8
+    assert sorted(p.relative_to(ws / "stereo") for p in (ws / "stereo").rglob("*.bin")) == files
+    for rel in files:
+        assert (ws / "stereo" / rel).read_bytes() == (local / "stereo" / rel).read_bytes(), rel
+    assert read_fusion_cfg(ws / "stereo" / "fusion.cfg") == read_fusion_cfg(local / "stereo" / "fusion.cfg")
+    assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(scene, tmp_path):
+    """The default `--ray_address ""` starts a local Ray (and stops it, restoring this process's signal
+    handlers); a worker killed with SIGKILL while it runs a task is replaced, its reference runs again
+    elsewhere, and every map equals the local run's. (Runs before the module's shared cluster starts.)"""
+    ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
+    if ray.is_initialized():
+        pytest.skip("a Ray is already running in this process")
+    before = signal.getsignal(signal.SIGTERM)
+    ws = _copy(scene, tmp_path)
+    killed: list[int] = []
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
+    killer.start()
+    try:
+        result = run_stereo(_config(ws, scene["ckpt"], ray_address=""))
+    finally:
+        stop.set()
+        killer.join(5)
+    assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
+    assert len(killed) == 1, "no worker was seen running a task"
+    assert killed[0] not in _worker_pids("any")
+    assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
+    assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
+    _assert_same_maps(ws, scene["local"])
+
+
+def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene, tmp_path):
+    """`colmap-pvs stereo --backend ray` joins the cluster (HOST:PORT); its driver is killed mid-run;
+    the rerun keeps the finished maps, computes the rest, and every map equals the local run's."""
+    ws = _copy(scene, tmp_path)
+    address = ray_cluster.get_runtime_context().gcs_address
+    argv = [sys.executable, "-m", "colmap_pvs.cli", "stereo", "--workspace_path", str(ws), "--checkpoint",
+            str(scene["ckpt"]), "--num_views", "3", "--max_image_size", "240", "--min_confidence", "0",
+            "--backend", "ray", "--ray_address", address, "--ray_workers", "2", "--ray_worker_threads", "1"]
+    driver = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    maps = ws / "stereo" / "depth_maps"
+    try:
+        while driver.poll() is None and not list(maps.glob("*.geometric.bin")):
+            time.sleep(0.01)
+        driver.kill()  # the driver dies mid-run; Ray then kills its workers
+    finally:
+        _, err = driver.communicate(timeout=30)
+    assert driver.returncode == -signal.SIGKILL, err.decode()[-2000:]
+    finished = {p.name: p.stat().st_mtime_ns for p in maps.glob("*.geometric.bin")}
+    assert finished
+    saved = json.loads((ws / "stereo" / CONFIG_FILENAME).read_text())
+    assert saved["config"]["backend"] == "ray" and saved["checkpoint_used"] == str(scene["ckpt"])
+    result = run_stereo(_config(ws, scene["ckpt"], ray_workers=1))
+    assert len(result.already_done) >= len(finished) and len(result.already_done) + len(result.processed) == 8
+    assert result.retried == {}
+    for name, mtime in finished.items():  # kept, not recomputed
+        assert (maps / name).stat().st_mtime_ns == mtime
+    _assert_same_maps(ws, scene["local"])
+
+
+def _worker_pids(state: str) -> list[int]:
+    """PIDs of Ray StereoWorker processes; ``state="process"``: those running a task right now."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            title = (entry / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
+        except OSError:
+            continue
+        if title.startswith("ray::StereoWorker") and (
+            state == "any" or title.startswith(f"ray::StereoWorker.{state}")
+        ):
+            pids.append(int(entry.name))
+    return pids
+
+
+def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
+    """Kill the first worker seen running ``process`` (mid-task) with SIGKILL."""
+    while not stop.is_set():
+        busy = _worker_pids("process")
+        if busy:
+            os.kill(busy[0], signal.SIGKILL)
+            killed.append(busy[0])
+            return
+        time.sleep(0.005)
+
+
+def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
+    ws = _copy(scene, tmp_path)
+    killed: list[int] = []
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
+    killer.start()
+    try:  # no retries allowed: the first worker lost stops the run, naming its reference
+        with pytest.raises(DistributedError, match=r"view_\d+.png' \(photometric pass\): its Ray worker died "
+                           r"1 time\(s\) \(last: ActorDiedError; ray_max_retries=0\)"):
+            run_stereo(_config(ws, scene["ckpt"], ray_max_retries=0, ray_workers=1))
+    finally:
+        stop.set()
+        killer.join(5)
+    assert len(killed) == 1
+    assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
+    deadline = time.monotonic() + 20
+    while _worker_pids("any") and time.monotonic() < deadline:  # the run kills its workers when it stops
+        time.sleep(0.2)
+    assert _worker_pids("any") == []
+
+
+def test_ray_worker_cannot_read_workspace(ray_cluster, tmp_path, capsys):
+    missing = tmp_path / "not-mounted"
+    assert main(["stereo", "--workspace_path", str(missing), "--backend", "ray", "--ray_workers", "1"]) == 1
+    err = capsys.readouterr().err
+    assert f"Ray worker on {socket.gethostname()}" in err and str(missing) in err
+    assert "every Ray node sees" in err and "Traceback" not in err
+
+
+def test_ray_worker_that_fits_no_node_is_refused(ray_cluster, scene, tmp_path):
+    ws = _copy(scene, tmp_path)
+    with pytest.raises(DistributedError, match="no Ray node can hold one worker of ray_worker_threads=3"):
+        run_stereo(_config(ws, scene["ckpt"], ray_worker_threads=3, ray_workers=1, ray_address=""))
+
+
+def test_reconstruct_stereo_step_on_ray(ray_cluster, analytic_scene, tmp_path):
+    from colmap_pvs.reconstruct import reconstruct
+
+    src = analytic_scene["root"]
+    config = ReconstructConfig(image_path=src / "images", workspace_path=tmp_path / "out",
+                               input_path=src / "sparse", checkpoint=make_tiny_checkpoint(tmp_path / "t.pt"),
+                               num_views=3, stop_after="stereo", backend="ray", ray_workers=1)
+    reconstruct(config)
+    stereo = tmp_path / "out" / "dense" / "stereo"
+    assert len(list((stereo / "depth_maps").glob("*.geometric.bin"))) == 5
+    saved = json.loads((stereo / CONFIG_FILENAME).read_text())["config"]
+    assert {k: saved[k] for k in ("backend", "ray_workers")} == {"backend": "ray", "ray_workers": 1}
+
+
+def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_path):
+    """With test-time adaptation the first worker adapts, the others reuse its weights: the maps equal
+    a local adapted run's."""
+    import torch
+
+    ckpt = make_tiny_checkpoint(tmp_path / "base.pt", channels_last=False)
+    runs = {}
+    for backend in ("local", "ray"):
+        ws = tmp_path / backend
+        shutil.copytree(analytic_scene["root"], ws)
+        for sub in ("depth_maps", "normal_maps"):
+            shutil.rmtree(ws / "stereo" / sub)
+        threads = torch.get_num_threads()
+        try:
+            runs[backend] = run_stereo(StereoConfig(
+                workspace_path=ws, checkpoint=ckpt, num_views=3, max_image_size=160, min_confidence=0.0,
+                adapt_steps=2, threads=1, backend=backend, ray_workers=2, ray_worker_threads=1))
+        finally:
+            torch.set_num_threads(threads)
+    assert runs["local"].adapt_seconds > 0 and len(runs["ray"].processed) == 5
+    assert (tmp_path / "ray" / "stereo" / "adapt" / "adapted.pt").is_file()
+    for f in sorted((tmp_path / "local" / "stereo" / "depth_maps").glob("*.bin")):
+        assert (tmp_path / "ray" / "stereo" / "depth_maps" / f.name).read_bytes() == f.read_bytes(), f.name
