@@ -2,9 +2,9 @@
 
 pycolmap logs through glog, to the terminal by default (``reconstruct`` printed ~230 lines). Inside
 :func:`pycolmap_log_to_file` its messages go to ``FOLDER/pycolmap.log.DATE-TIME.PID`` instead (errors
-still reach the terminal). The long pycolmap calls (feature extraction, matching) release the GIL,
-so :class:`DatabaseProgress` can show a progress bar by counting the rows they write to COLMAP's
-database (which COLMAP opens in WAL mode: a reader never blocks its writer).
+still reach the terminal). The long pycolmap calls (feature extraction, matching) get a
+:class:`DatabaseProgress` bar: elapsed time while they run, the count of rows they wrote to COLMAP's
+database once they return (the database is never read while COLMAP writes it).
 """
 
 from __future__ import annotations
@@ -54,9 +54,12 @@ def pycolmap_log_to_file(folder: str | os.PathLike, *, enabled: bool = True) -> 
 
 
 class DatabaseProgress:
-    """A tqdm bar fed by ``SELECT COUNT(*) FROM table`` on a COLMAP database, polled in a thread.
+    """A tqdm bar for the pycolmap call that fills ``table`` of a COLMAP database.
 
-    Use as a context manager around the pycolmap call that fills ``table``.
+    Use as a context manager around that call. While it runs, a thread only refreshes the bar
+    (elapsed time); the count (``SELECT COUNT(*) FROM table``) is read once the call returned.
+    Reading the database while COLMAP writes it is not safe: a reader's lock made COLMAP abort
+    with "SQLite error: database is locked" (seen on a loaded 2-core machine).
     """
 
     def __init__(self, database: str | os.PathLike, table: str, total: int, desc: str, unit: str,
@@ -87,7 +90,7 @@ class DatabaseProgress:
 
     def _poll(self) -> None:
         while not self._stop.wait(self.interval_s):
-            self._update()
+            self.bar.refresh()  # never touch the database while COLMAP writes it
 
     def __enter__(self) -> DatabaseProgress:
         self._thread.start()
