@@ -124,7 +124,7 @@ class ViewSelectionConfig:
         },
     )
     depth_outlier_min_factor: float = field(
-        default=3.0,
+        default=5.0,
         metadata={"help": "points within [median / f, median * f] are never outliers (f > 1)"},
     )
     depth_outlier_max_fraction: float = field(
