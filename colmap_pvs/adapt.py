@@ -17,7 +17,6 @@ setting starts the adaptation again from scratch.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import shutil
@@ -28,6 +27,7 @@ from pathlib import Path
 
 from .config import atomic_write_bytes, config_to_dict
 from .errors import ConfigError
+from .evaluate import file_sha256
 
 logger = logging.getLogger(__name__)
 
@@ -69,14 +69,6 @@ class AdaptResult:
     reused: bool
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Path, config: AdaptConfig,
                      progress: bool = True) -> AdaptResult:
     """Fine-tune ``base_checkpoint`` on the workspace's own images; return the adapted checkpoint.
@@ -96,7 +88,7 @@ def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Pa
     out = Path(stereo_dir) / ADAPT_DIRNAME
     adapted, meta_path = out / "adapted.pt", out / "adapted.json"
     fingerprint = {
-        "base_checkpoint_sha256": _sha256(Path(base_checkpoint)),
+        "base_checkpoint_sha256": file_sha256(Path(base_checkpoint)),
         "settings": {k: v for k, v in config_to_dict(config).items() if k != "threads"},
     }
     if adapted.is_file() and meta_path.is_file():

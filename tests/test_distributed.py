@@ -22,9 +22,9 @@ import types
 from pathlib import Path
 
 import pytest
-from colmap_pvs.cli.main import main
 from conftest import make_tiny_checkpoint
 
+from colmap_pvs.cli.main import main
 from colmap_pvs.distributed import TaskGraph, stereo_passes
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
