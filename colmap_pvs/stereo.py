@@ -353,15 +353,20 @@ def _sparse_depth_map(
     return sparse_depth_map(model.points.xyz[rows], K, image.cam_from_world, height, width)
 
 
-def drop_outlier_hints(sparse: np.ndarray, depth_range: tuple[float, float], config) -> np.ndarray:
+#: Sparse hints farther than this factor outside the image's depth range are outliers.
+HINT_OUTLIER_FACTOR = 2.0
+
+
+def drop_outlier_hints(sparse: np.ndarray, depth_range: tuple[float, float]) -> np.ndarray:
     """Zero the hints of ``sparse`` ``[H, W]`` (in place) that are depth outliers.
 
-    A hint is an outlier when it lies more than ``config.depth_outlier_min_factor`` (5) outside the
-    image's depth range: ``z < dmin / f`` or ``z > dmax * f``. Hints just outside the range are real
-    surfaces more often than not (the range is the 1st-99th percentile, and near walls in indoor
-    video lie below it): dropping every hint outside it raised hololens-dev MAE from 212 to 219 mm.
+    A hint is an outlier when ``z < dmin / f`` or ``z > dmax * f`` with ``f`` =
+    :data:`HINT_OUTLIER_FACTOR` (the range already carries COLMAP's 25 % stretch). Hints just outside
+    the range are real surfaces more often than not (the range is the 1st-99th percentile, and near
+    walls in indoor video lie below it): dropping every hint outside it raised hololens-dev MAE from
+    212 to 219 mm.
     """
-    f = config.depth_outlier_min_factor
+    f = HINT_OUTLIER_FACTOR
     sparse[(sparse < depth_range[0] / f) | (sparse > depth_range[1] * f)] = 0.0
     return sparse
 
@@ -691,7 +696,7 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
     ref = ctx.sparse.image_by_name(name)
     sparse = _sparse_depth_map(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
     entry = ctx.selection.references[name]
-    drop_outlier_hints(sparse, entry.depth_range, ctx.selection.config)
+    drop_outlier_hints(sparse, entry.depth_range)
     timings["prior"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:

@@ -68,9 +68,10 @@ def test_outlier_rejection_can_be_switched_off():
 
 
 def test_only_outlier_hints_are_dropped():
-    from colmap_pvs.stereo import drop_outlier_hints
+    from colmap_pvs.stereo import HINT_OUTLIER_FACTOR, drop_outlier_hints
 
-    hints = np.array([[5.0, 3.5, 30.0, 1.0, 0.0, 9.0]], dtype=np.float32)
-    out = drop_outlier_hints(hints.copy(), (4.0, 8.0), ViewSelectionConfig(depth_outlier_min_factor=3.0))
-    # just outside the range (3.5, 9): kept, a near wall is real; 3x outside (30, 1): dropped
-    np.testing.assert_array_equal(out, [[5.0, 3.5, 0.0, 0.0, 0.0, 9.0]])
+    assert HINT_OUTLIER_FACTOR == 2.0
+    hints = np.array([[5.0, 3.5, 30.0, 1.0, 0.0, 9.0, 2.5]], dtype=np.float32)
+    out = drop_outlier_hints(hints.copy(), (4.0, 8.0))
+    # just outside the range (3.5, 9, 2.5): kept, a near wall is real; 2x outside (30, 1): dropped
+    np.testing.assert_array_equal(out, [[5.0, 3.5, 0.0, 0.0, 0.0, 9.0, 2.5]])
