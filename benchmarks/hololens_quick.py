@@ -49,6 +49,7 @@ def main() -> int:
     p.add_argument("--disturbed", action="store_true", help="also: 2 of the sources replaced by far frames")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
+    p.add_argument("--views", nargs="*", default=[], metavar="KEY=VALUE", help="ViewSelectionConfig fields")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if not (a.data / "poses.txt").is_file():
@@ -59,7 +60,9 @@ def main() -> int:
     sparse = rd.build_model(a.data, work, a.threads)
     model = read_sparse_model(sparse)
     names = sorted(model.image_ids_by_name)
-    sel = select_views(model, ViewSelectionConfig(num_views=a.num_views))
+    view_fields = {k: _value(v) for k, v in (kv.split("=", 1) for kv in a.views)}
+    view_cfg = config_from_dict(ViewSelectionConfig, {"num_views": a.num_views, **view_fields})
+    sel = select_views(model, view_cfg)
     refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
     settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in refs})]
     if a.disturbed:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import json
 import resource
 import shutil
 import sys
@@ -40,11 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--previews", action="store_true")
     p.add_argument("--no_geom", action="store_true", help="photometric pass only")
     p.add_argument("--record", action="store_true", help="append the table to benchmarks/RESULTS.md")
+    p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
     args = p.parse_args(argv)
     if not (args.data / "poses.txt").is_file():
         print(f"hololens-dev data not found at {args.data}", file=sys.stderr)
         return 2
 
+    from colmap_pvs.config import config_from_dict
     from colmap_pvs.io.sparse import read_sparse_model
     from colmap_pvs.stereo import StereoConfig, run_stereo
 
@@ -60,17 +63,22 @@ def main(argv: list[str] | None = None) -> int:
         "".join(f"{r}\n__auto__, {args.num_views - 1}\n" for r in refs)
     )
     start = time.perf_counter()
-    res = run_stereo(
-        StereoConfig(
-            workspace_path=ws,
-            num_views=args.num_views,
-            max_image_size=args.max_image_size,
-            threads=args.threads,
-            device="cpu",
-            previews=args.previews,
-            geom_consistency=not args.no_geom,
-        )
-    )
+    fields = {
+        "workspace_path": str(ws),
+        "num_views": args.num_views,
+        "max_image_size": args.max_image_size,
+        "threads": args.threads,
+        "device": "cpu",
+        "previews": args.previews,
+        "geom_consistency": not args.no_geom,
+    }
+    for item in args.stereo:
+        key, _, value = item.partition("=")
+        try:
+            fields[key] = json.loads(value)
+        except ValueError:
+            fields[key] = value
+    res = run_stereo(config_from_dict(StereoConfig, fields))
     wall = time.perf_counter() - start
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     n_photo = len(res.processed) + len(res.auxiliary)

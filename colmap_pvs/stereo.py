@@ -67,6 +67,7 @@ from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write
 from .model.runtime import check_memory_budget
 from .normals import depth_to_normals, fit_normals
 from .types import Image, SparseModel
+from .upsampling import guided_upsample_depth, resize_bilinear
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
 logger = logging.getLogger(__name__)
@@ -78,7 +79,9 @@ FORMAT_VERSIONS = {"photometric": 2, "geometric": 4}
 Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
-PHOTOMETRIC_SETTINGS = ("num_views", "max_image_size", "min_confidence", "sparse_guidance", "sparse_prior")
+PHOTOMETRIC_SETTINGS = (
+    "num_views", "max_image_size", "network_scale", "min_confidence", "sparse_guidance", "sparse_prior",
+)
 #: Settings that change the geometric maps (with the photometric fingerprints they read).
 GEOMETRIC_SETTINGS = (
     "geom_min_consistent",
@@ -100,6 +103,13 @@ class StereoConfig:
     num_views: int = field(default=5, metadata={"help": "views per reference: reference + N-1 sources"})
     max_image_size: int = field(
         default=640, metadata={"help": "longest image side for inference; <= 0 keeps full size"}
+    )
+    network_scale: float = field(
+        default=0.8,
+        metadata={
+            "help": "run the network at this fraction of the map size (0.25-1) and bring its depth "
+            "back to the map size by image-guided upsampling; maps keep max_image_size"
+        },
     )
     checkpoint: Path | None = field(
         default=None, metadata={"help": "model checkpoint (.pt); default: the shipped checkpoint"}
@@ -199,6 +209,7 @@ class StereoConfig:
 
         check_range("num_views", self.num_views, low=2)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("network_scale", self.network_scale, low=0.25, high=1.0)
         check_range("threads", self.threads, low=0)
         check_range("min_sources", self.min_sources, low=1)
         check_range("adapt_steps", self.adapt_steps, low=0)
@@ -484,6 +495,14 @@ class StereoContext:
         return (max(1, min(m, int(np.floor(cam.width * s + 0.5)))),
                 max(1, min(m, int(np.floor(cam.height * s + 0.5)))))
 
+    def network_size(self, name: str) -> tuple[int, int]:
+        """``(W, H)`` the network runs at for ``name``: ``network_scale`` times its map size."""
+        w, h = self.map_size(name)
+        s = self.config.network_scale
+        if s >= 1.0:
+            return w, h
+        return max(16, int(np.floor(w * s + 0.5))), max(16, int(np.floor(h * s + 0.5)))
+
     def map_K(self, name: str, size: tuple[int, int]) -> np.ndarray:
         cam = self.sparse.camera_of(self.sparse.image_by_name(name))
         return fusion_intrinsics(cam.K, (cam.width, cam.height), size)
@@ -495,9 +514,11 @@ class StereoContext:
         sources, _ = self.sources_of(name)
         if sources is None:
             return
-        size = self.map_size(name)
+        size = self.network_size(name)
         for n in [name, *sources]:
             self.images.future(n, self.config.max_image_size, size, executor=self.loader)
+        if size != self.map_size(name):  # the upsampling's guide
+            self.images.future(name, self.config.max_image_size, self.map_size(name), executor=self.loader)
 
     def submit_write(self, fn, *args) -> None:
         """Run a write job in the writer thread (synchronously when there is none)."""
@@ -685,14 +706,16 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     names = [name, *sources]
-    futures = [ctx.images.future(n, cfg.max_image_size, size) for n in names]
+    net_size = ctx.network_size(name)
+    futures = [ctx.images.future(n, cfg.max_image_size, net_size) for n in names]
     images = np.stack([f.result() for f in futures])
-    Ks = np.stack([ctx.map_K(n, size) for n in names])
+    guide = ctx.images.get(name, cfg.max_image_size, size) if net_size != size else None
+    Ks = np.stack([ctx.map_K(n, net_size) for n in names])
     # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
     poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    w, h = size
+    w, h = net_size
     ref = ctx.sparse.image_by_name(name)
     sparse = _sparse_depth_map(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
     entry = ctx.selection.references[name]
@@ -710,12 +733,18 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
         logger.error("skipping %s: %s (%s)", name, reason, exc)
         return RefOutcome(name, "photometric", "skipped", reason)
     timings["network"] = time.perf_counter() - t0
+    if guide is not None:  # back to the map size along the image's edges
+        t0 = time.perf_counter()
+        w, h = size
+        depth = guided_upsample_depth(depth, guide)
+        conf = resize_bilinear(np.nan_to_num(conf, nan=0.0), h, w)
+        timings["upsample"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
     conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     timings["confidence"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    normals = depth_to_normals(depth, Ks[0])
+    normals = depth_to_normals(depth, ctx.map_K(name, size))
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     timings["normals"] = time.perf_counter() - t0
     extra = {"image_size": list(size), "sources": sources}

@@ -59,6 +59,9 @@ __all__ = [
 
 # Upper bound on the number of observation pairs materialised at once (memory ~ 100 B per pair).
 _MAX_PAIRS_PER_CHUNK = 1 << 22
+# Candidates put in coverage-aware order per reference (the rest follow by score): the network's
+# sources and the geometric pass's extra views come from this prefix.
+_COVERAGE_PICKS = 16
 
 
 # --------------------------------------------------------------------------- config
@@ -85,6 +88,14 @@ class ViewSelectionConfig:
     sigma2: float = field(
         default=10.0,
         metadata={"help": "width (degrees) of the view-score Gaussian for angles above theta0"},
+    )
+    coverage_decay: float = field(
+        default=0.1,
+        metadata={
+            "help": "coverage-aware source choice in [0, 1]: sources are picked one at a time by their "
+            "MVSNet score over the reference's sparse points, a point already seen by k picked sources "
+            "counting decay^k (1: the plain top-N by score; 0: only points no picked source sees)"
+        },
     )
     min_shared_points: int = field(
         default=3,
@@ -146,6 +157,8 @@ class ViewSelectionConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a positive number, got {value}")
+        if not 0.0 <= self.coverage_decay <= 1.0:
+            raise ConfigError(f"coverage_decay must be in [0, 1], got {self.coverage_decay}")
         if self.min_shared_points < 1:
             raise ConfigError(f"min_shared_points must be >= 1, got {self.min_shared_points}")
         if self.min_points < 1:
@@ -263,6 +276,105 @@ def _pair_indices(offsets: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, np
     return first, second
 
 
+@dataclass(frozen=True, eq=False)
+class _Observations:
+    """Clean observations (see :func:`_clean_tracks`) with one unit ray each, camera centre -> point.
+
+    ``offsets [P + 1]``, ``image [T]`` (index into the image ids), ``point [T]`` (point row),
+    ``rays [T, 3]``, ``valid [T]`` (False for a point at the camera centre).
+    """
+
+    offsets: np.ndarray
+    image: np.ndarray
+    point: np.ndarray
+    rays: np.ndarray
+    valid: np.ndarray
+    num_images: int
+
+
+def _observations(model: SparseModel, image_ids: np.ndarray) -> _Observations:
+    centers = np.stack([model.images[int(i)].center for i in image_ids]).astype(np.float64)  # [n, 3]
+    xyz = np.asarray(model.points.xyz, dtype=np.float64)  # [P, 3]
+    offsets, obs_image, obs_point = _clean_tracks(model.points, image_ids)
+    rays = xyz[obs_point] - centers[obs_image]
+    norms = np.linalg.norm(rays, axis=1)
+    valid = norms > 0
+    rays = rays / np.where(valid, norms, 1.0)[:, None]
+    return _Observations(offsets, obs_image, obs_point, rays, valid, int(image_ids.shape[0]))
+
+
+def coverage_order(
+    obs: _Observations,
+    reference: int,
+    candidates: np.ndarray,
+    count: int,
+    config: ViewSelectionConfig,
+    *,
+    _by_image: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """The first ``count`` of ``candidates`` in coverage-aware order (greedy, best first).
+
+    Each step picks the candidate ``j`` with the largest ``sum_p G(theta_rj(p)) decay^c(p)`` over
+    the sparse points ``p`` that the reference ``r`` and ``j`` both observe, where ``c(p)`` counts
+    the picks so far that observe ``p`` (``decay = config.coverage_decay``). The first pick is the
+    best by MVSNet score; later picks prefer views of the parts of the reference the picked views
+    miss. Ties go to the earlier candidate. ``decay = 1`` returns ``candidates[:count]``.
+
+    Args:
+        obs: the model's observations; ``reference`` and ``candidates`` ``[k]`` index its images.
+        _by_image: ``(order, offsets)``, observations grouped by image (computed when ``None``).
+
+    Returns:
+        ``[min(count, k)]`` int64 indices, a reordering of a subset of ``candidates``.
+    """
+    candidates = np.asarray(candidates, dtype=np.int64)
+    count = min(int(count), candidates.shape[0])
+    if config.coverage_decay >= 1.0 or count <= 1:
+        return candidates[:count]
+    if _by_image is None:
+        _by_image = _group_by_image(obs)
+    order, image_offsets = _by_image
+    ref_obs = order[image_offsets[reference] : image_offsets[reference + 1]]
+    ref_obs = ref_obs[obs.valid[ref_obs]]
+    pts = obs.point[ref_obs]  # the reference's points, one observation each
+    lengths = obs.offsets[pts + 1] - obs.offsets[pts]
+    other = np.repeat(obs.offsets[pts], lengths) + (
+        np.arange(int(lengths.sum()), dtype=np.int64) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    )
+    mine = np.repeat(ref_obs, lengths)
+    local = np.repeat(np.arange(pts.shape[0], dtype=np.int64), lengths)  # which reference point
+    keep = obs.valid[other] & (obs.image[other] != reference)
+    other, mine, local = other[keep], mine[keep], local[keep]
+    cos = np.einsum("ij,ij->i", obs.rays[mine], obs.rays[other])
+    sin = np.linalg.norm(np.cross(obs.rays[mine], obs.rays[other]), axis=1)
+    g = angle_weight(np.degrees(np.arctan2(sin, cos)), config.theta0_deg, config.sigma1, config.sigma2)
+    slot = np.full(obs.num_images, -1, dtype=np.int64)
+    slot[candidates] = np.arange(candidates.shape[0])
+    cand = slot[obs.image[other]]
+    ok = cand >= 0
+    g, cand, local = g[ok], cand[ok], local[ok]
+    seen = np.zeros(pts.shape[0], dtype=np.float64)  # picks observing each reference point
+    picked: list[int] = []
+    free = np.ones(candidates.shape[0], dtype=bool)
+    for _ in range(count):
+        weights = g * config.coverage_decay ** seen[local]
+        gain = np.bincount(cand, weights=weights, minlength=candidates.shape[0])
+        gain[~free] = -np.inf
+        best = int(np.argmax(gain))
+        picked.append(best)
+        free[best] = False
+        seen[np.unique(local[cand == best])] += 1.0
+    return candidates[np.asarray(picked, dtype=np.int64)]
+
+
+def _group_by_image(obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
+    n = obs.num_images
+    order = np.argsort(obs.image, kind="stable")
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(obs.image, minlength=n), out=offsets[1:])
+    return order, offsets
+
+
 def compute_pair_statistics(model: SparseModel, config: ViewSelectionConfig | None = None) -> PairStatistics:
     """MVSNet scores and shared-point counts of all image pairs (see the module docstring).
 
@@ -270,24 +382,21 @@ def compute_pair_statistics(model: SparseModel, config: ViewSelectionConfig | No
     a point by one image and points with non-finite coordinates are ignored.
     A point at a camera centre (zero-length ray) contributes nothing to that camera.
     """
-    config = config or ViewSelectionConfig()
+    return _pair_statistics(model, config or ViewSelectionConfig())[0]
+
+
+def _pair_statistics(
+    model: SparseModel, config: ViewSelectionConfig
+) -> tuple[PairStatistics, _Observations | None]:
     image_ids = np.array(sorted(model.images), dtype=np.int64)
     n = image_ids.shape[0]
     scores = np.zeros((n, n), dtype=np.float64)
     shared = np.zeros((n, n), dtype=np.int64)
     if n < 2 or len(model.points) == 0:
-        return PairStatistics(image_ids, scores, shared)
+        return PairStatistics(image_ids, scores, shared), None
 
-    centers = np.stack([model.images[int(i)].center for i in image_ids]).astype(np.float64)  # [n, 3]
-    xyz = np.asarray(model.points.xyz, dtype=np.float64)  # [P, 3]
-    offsets, obs_image, obs_point = _clean_tracks(model.points, image_ids)
-
-    # One unit ray per observation, camera centre -> point: [T', 3].
-    rays = xyz[obs_point] - centers[obs_image]
-    norms = np.linalg.norm(rays, axis=1)
-    valid = norms > 0
-    rays = rays / np.where(valid, norms, 1.0)[:, None]
-
+    obs = _observations(model, image_ids)
+    offsets, obs_image, rays, valid = obs.offsets, obs.image, obs.rays, obs.valid
     lengths = np.diff(offsets)
     pairs_per_point = lengths * (lengths - 1) // 2
     cum_pairs = np.cumsum(pairs_per_point)
@@ -321,7 +430,7 @@ def compute_pair_statistics(model: SparseModel, config: ViewSelectionConfig | No
     shared = shared + shared.T
     np.fill_diagonal(scores, 0.0)
     np.fill_diagonal(shared, 0)
-    return PairStatistics(image_ids, scores, shared)
+    return PairStatistics(image_ids, scores, shared), obs
 
 
 def compute_view_scores(
@@ -529,10 +638,12 @@ class ReferenceViews:
         name, image_id: the reference image.
         num_points: observed sparse points in front of the camera (used for the depth range).
         depth_range: ``(dmin, dmax)``, both ``> 0``.
-        source_names: the top ``num_views - 1`` candidate sources, best first.
-        source_scores: their scores.
+        source_names: the first ``num_views - 1`` of ``ranked_names``.
+        source_scores: their MVSNet scores.
         ranked_names: every candidate source (score ``> 0``, at least
-            ``min_shared_points`` shared points), best first; ``source_names`` is a prefix.
+            ``min_shared_points`` shared points) in selection order: the first picks in
+            coverage-aware order (:func:`coverage_order`; the very first is the best by score),
+            the others by decreasing score; ``source_names`` is a prefix.
         ranked_scores: ``[k]`` float64 their scores.
     """
 
@@ -616,7 +727,8 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
     candidate source (score ``> 0`` and at least ``config.min_shared_points`` shared points).
     """
     config = config or ViewSelectionConfig()
-    stats = compute_pair_statistics(model, config)
+    stats, obs = _pair_statistics(model, config)
+    by_image = _group_by_image(obs) if obs is not None and config.coverage_decay < 1.0 else None
     names = tuple(model.images[int(i)].name for i in stats.image_ids)
     order = np.argsort(np.asarray(model.points.ids, dtype=np.int64), kind="stable")
     n_sources = config.num_views - 1
@@ -649,6 +761,10 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
                 ranked.shape[0],
                 n_sources,
             )
+        if by_image is not None:  # coverage-aware order of the first picks (the geometric pass: 10)
+            picks = max(n_sources, _COVERAGE_PICKS)
+            first = coverage_order(obs, k, ranked, picks, config, _by_image=by_image)
+            ranked = np.concatenate([first, ranked[~np.isin(ranked, first)]])
         ranked_names = tuple(names[j] for j in ranked)
         ranked_scores = row[ranked]
         depth_range, note = _robust_depth_range(depths, config, repr(image.name))
@@ -710,9 +826,11 @@ def resolve_sources(
 
     - ``"explicit"``: ``names`` as given (duplicates dropped with a warning); every
       name must be an image of the model, and not the reference itself.
-    - ``"auto"`` (``__auto__, num``): the ``num`` best candidate sources by score
-      (score ``> 0``; with a :class:`ViewSelection`, also ``>= min_shared_points``).
-    - ``"all"`` (``__all__``): every other image, by decreasing score (ties by name order).
+    - ``"auto"`` (``__auto__, num``): the ``num`` best candidate sources by score (score
+      ``> 0``); with a :class:`ViewSelection`, the first ``num`` of the reference's
+      ``ranked_names`` (coverage-aware order, ``>= min_shared_points``).
+    - ``"all"`` (``__all__``): every other image, by decreasing score (ties by name order);
+      with a :class:`ViewSelection`, the reference's ``ranked_names`` come first.
 
     Args:
         selection_or_scores: a :class:`ViewSelection`, or ``(image_names [n], scores [n, n])``.
@@ -735,6 +853,9 @@ def resolve_sources(
             raise ShapeError(
                 f"scores has shape {scores.shape}, expected [{len(all_names)}, {len(all_names)}]"
             )
+    selected = None
+    if isinstance(selection_or_scores, ViewSelection):
+        selected = selection_or_scores.references.get(ref_name)
     index = {name: k for k, name in enumerate(all_names)}
     if ref_name not in index:
         raise WorkspaceError(f"reference image {ref_name!r} is not in the sparse model")
@@ -760,12 +881,16 @@ def resolve_sources(
     if mode == "auto":
         if isinstance(num, bool) or int(num) != num or num < 1:
             raise WorkspaceError(f"__auto__ needs a positive number of sources for {ref_name!r}, got {num!r}")
+        if selected is not None:
+            return selected.ranked_names[: int(num)]
         ranked = rank_sources(row, None if shared is None else shared[k], min_shared)
         return tuple(all_names[j] for j in ranked[: int(num)])
     if mode == "all":
         others = np.array([j for j in range(len(all_names)) if j != k], dtype=np.int64)
-        ordered = others[np.lexsort((others, -row[others]))]
-        return tuple(all_names[j] for j in ordered)
+        ordered = tuple(all_names[j] for j in others[np.lexsort((others, -row[others]))])
+        if selected is not None:  # the selection's order first (coverage-aware), then the rest
+            ordered = selected.ranked_names + tuple(n for n in ordered if n not in selected.ranked_names)
+        return ordered
     raise WorkspaceError(f"unknown source mode {mode!r}; expected 'explicit', 'auto' or 'all'")
 
 

@@ -10,6 +10,7 @@ from colmap_pvs.errors import ConfigError, ShapeError
 from colmap_pvs.model import PVSNetConfig
 from colmap_pvs.model.cascade import (
     next_stage_range,
+    prior_halfwidth_map,
     prior_plane_range,
     probability_confidence,
     regress_inverse_depth,
@@ -337,3 +338,22 @@ def test_config_validation():
     )
     assert cfg.output_scales == (4, 4, 4)
     assert PVSNetConfig().output_scales == (4, 4, 4, 2, 1)
+
+
+def test_prior_halfwidth_grows_away_from_hints():
+    hint = torch.zeros(1, 1, 40, 40)
+    hint[0, 0, 5, 5] = 2.0
+    r = prior_halfwidth_map(hint, 0.3, 2.0, (8, 16))
+    assert r.shape == hint.shape
+    torch.testing.assert_close(r[0, 0, 5, 13], torch.tensor(0.3))  # within 8 (Chebyshev)
+    torch.testing.assert_close(r[0, 0, 13, 13], torch.tensor(0.3))
+    torch.testing.assert_close(r[0, 0, 5, 14], torch.tensor(0.6))  # 9 away: beyond the first radius
+    torch.testing.assert_close(r[0, 0, 21, 5], torch.tensor(0.6))  # 16 away
+    torch.testing.assert_close(r[0, 0, 22, 30], torch.tensor(1.2))  # beyond both
+    torch.testing.assert_close(prior_halfwidth_map(hint, 0.3, 1.0, (8, 16)), torch.full_like(hint, 0.3))
+    # a per-pixel half-width widens only those pixels' windows (clipped to the global range)
+    prior = torch.full((1, 1, 1, 2), 0.5)
+    inv_lo, inv_hi = torch.tensor([0.2]), torch.tensor([1.0])
+    start, step = prior_plane_range(prior, torch.tensor([[[[0.2, 1.2]]]]), 9, inv_lo=inv_lo, inv_hi=inv_hi)
+    torch.testing.assert_close(start[0, 0, 0], torch.tensor([0.6, 1.0]))
+    torch.testing.assert_close((start - 8 * step)[0, 0, 0], torch.tensor([0.4, 0.2]))

@@ -290,3 +290,34 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
     ctx.close()
+
+
+def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,
+                                                                     monkeypatch):
+    ws = _copy(synthetic_ws, tmp_path)
+    seen = []
+    real = stereo_module.estimate_depth
+
+    def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
+        seen.append((images.shape[-2:], sparse_depth.shape, intrinsics[0].copy()))
+        return real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
+
+    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                       min_confidence=0.0, network_scale=0.5, geom_consistency=False)
+    res = run_stereo(cfg)
+    names = sorted(res.processed)
+    assert names and "upsample" in res.timings
+    # the network saw 32x24 images with matching hints and intrinsics; the maps are 64x48
+    assert all(tuple(s) == (24, 32) and tuple(h) == (24, 32) for s, h, _ in seen)
+    ws_obj, model = load_workspace(ws)
+    cam = model.camera_of(model.image_by_name(names[0]))
+    np.testing.assert_allclose(seen[0][2], fusion_intrinsics(cam.K, (cam.width, cam.height), (32, 24)))
+    for name in names:
+        assert read_depth_map(ws_obj.depth_map_path(name, "photometric")).shape == (48, 64)
+        assert read_normal_map(ws_obj.normal_map_path(name, "photometric")).shape == (48, 64, 3)
+    # the scale is a photometric setting: changing it recomputes the maps
+    seen.clear()
+    again = run_stereo(dataclasses.replace(cfg, network_scale=1.0))
+    assert sorted(again.processed) == names and all(tuple(s) == (48, 64) for s, _, _ in seen)
+    assert "upsample" not in again.timings

@@ -288,7 +288,7 @@ def test_no_candidate_source_is_skipped(caplog):
 
 def test_select_views_top_k_and_min_shared():
     model = ring_model(7, n_images=8, n_points=400)
-    cfg = ViewSelectionConfig(num_views=4, min_shared_points=3, min_points=5)
+    cfg = ViewSelectionConfig(num_views=4, min_shared_points=3, min_points=5, coverage_decay=1.0)
     sel = select_views(model, cfg)
     assert not sel.skipped
     for k, name in enumerate(sel.names):
@@ -315,13 +315,15 @@ def test_resolve_sources_modes():
     everything = resolve_sources(sel, ref, "all", (), 0)
     assert len(everything) == 5 and ref not in everything
     row = sel.score_row(ref)
-    assert [row[sel.index_of(n)] for n in everything] == sorted(row[row > -np.inf], reverse=True)
+    assert everything[: len(sel.references[ref].ranked_names)] == sel.references[ref].ranked_names
     assert resolve_sources(sel, ref, "explicit", (sel.names[3], sel.names[1], sel.names[3]), 0) == (
         sel.names[3],
         sel.names[1],
     )
-    # plain (names, scores) input
-    assert resolve_sources((sel.names, sel.scores), ref, "all", (), 0) == everything
+    # plain (names, scores) input: by decreasing score
+    by_score = resolve_sources((sel.names, sel.scores), ref, "all", (), 0)
+    assert set(by_score) == set(everything)
+    assert [row[sel.index_of(n)] for n in by_score] == sorted(row[row > -np.inf], reverse=True)
     with pytest.raises(WorkspaceError, match="nope.jpg"):
         resolve_sources(sel, ref, "explicit", ("nope.jpg",), 0)
     with pytest.raises(WorkspaceError, match="ghost.jpg"):
@@ -410,3 +412,55 @@ def test_colmap_statue_selection():
         assert dmin <= lo and hi <= dmax
     table = format_selection_table(sel)
     assert table.count("DSC_") >= 23
+
+
+# --------------------------------------------------------------------------- coverage-aware order
+
+
+def two_cluster_model() -> SparseModel:
+    """Reference 1 sees a left cluster (points 0-29) and a right cluster (30-39).
+
+    Images 2 and 3 see only the left cluster, image 4 only the right one; all at ~5 degrees
+    from the reference, so by plain score 2 and 3 (30 shared points) beat 4 (10).
+    """
+    rng = np.random.default_rng(3)
+    left = rng.uniform(-0.3, 0.3, (30, 3)) + [-1.0, 0.0, 0.0]
+    right = rng.uniform(-0.3, 0.3, (10, 3)) + [1.0, 0.0, 0.0]
+    xyz = np.concatenate([left, right])
+    a = np.radians(5.0)
+    centers = np.array([
+        [0.0, -10.0, 0.0],
+        [10 * np.sin(a), -10 * np.cos(a), 0.0],
+        [-10 * np.sin(a), -10 * np.cos(a), 0.0],
+        [0.0, -10 * np.cos(a), 10 * np.sin(a)],
+    ])
+    tracks = [[1, 2, 3]] * 30 + [[1, 4]] * 10
+    return make_model(centers, xyz, tracks)
+
+
+def test_coverage_order_prefers_views_of_uncovered_points():
+    model = two_cluster_model()
+    plain = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=1.0))
+    aware = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=0.1))
+    ref = "img_001.jpg"
+    assert plain.references[ref].source_names[1] in ("img_002.jpg", "img_003.jpg")
+    # the best by score still comes first; the second covers the right cluster
+    assert aware.references[ref].source_names[0] == plain.references[ref].source_names[0]
+    assert aware.references[ref].source_names[1] == "img_004.jpg"
+    # every candidate is still listed once, and the scores follow the names
+    assert sorted(aware.references[ref].ranked_names) == sorted(plain.references[ref].ranked_names)
+    row = aware.score_row(ref)
+    entry = aware.references[ref]
+    for name, score in zip(entry.source_names, entry.source_scores, strict=True):
+        assert score == pytest.approx(row[aware.index_of(name)])
+    # decay 1 is the plain top-N on any model
+    ring = ring_model(5, n_images=7, n_points=300)
+    plain_ring = select_views(ring, ViewSelectionConfig(num_views=4, min_points=5, coverage_decay=1.0))
+    for name, entry in plain_ring.references.items():
+        order = np.argsort(-np.array([entry.ranked_scores]), kind="stable")[0]
+        assert list(order) == list(range(len(order))), name
+
+
+def test_coverage_decay_validation():
+    with pytest.raises(ConfigError, match="coverage_decay"):
+        ViewSelectionConfig(coverage_decay=1.5)

@@ -92,9 +92,33 @@ def next_stage_range(
     return inv_start, step
 
 
+def prior_halfwidth_map(
+    hint: torch.Tensor, halfwidth: float, growth: float, radii: tuple[int, ...]
+) -> torch.Tensor:
+    """Per-pixel relative half-width of the sparse prior's window, wider far from every hint.
+
+    The push-pull prior is an average of distant hints where no hint is near, and there it is
+    often wrong (a near object at the image border between far points): the window widens.
+
+    Args:
+        hint: ``[B, 1, h, w]`` sparse depth at the coarse resolution (0 = no hint).
+        halfwidth: ``r0``, the half-width near hints.
+        growth: ``g``; a pixel with no hint within ``k`` of the ``radii`` (pixels, Chebyshev
+            distance) gets ``r0 * g**k``.
+
+    Returns ``[B, 1, h, w]``; all ``r0`` when ``g == 1``.
+    """
+    has = (hint > 0).to(hint.dtype)
+    misses = torch.zeros_like(has)
+    if growth != 1.0:
+        for radius in radii:
+            misses = misses + (F.max_pool2d(has, 2 * radius + 1, stride=1, padding=radius) <= 0).to(has.dtype)
+    return halfwidth * growth**misses
+
+
 def prior_plane_range(
     prior_inv: torch.Tensor,
-    halfwidth: float,
+    halfwidth: float | torch.Tensor,
     num_planes: int,
     *,
     inv_lo: torch.Tensor,
@@ -104,7 +128,8 @@ def prior_plane_range(
 
     Args:
         prior_inv: ``[B, 1, h, w]`` prior inverse depth (0 = none: that pixel gets the global range).
-        halfwidth: relative half-width ``r``: planes span ``prior_inv * (1 +- r)``, moved (then
+        halfwidth: relative half-width ``r`` (a number, or per pixel ``[B, 1, h, w]``, see
+            :func:`prior_halfwidth_map`): planes span ``prior_inv * (1 +- r)``, moved (then
             clipped) inside ``[inv_lo, inv_hi]`` (``[B]``).
 
     Returns ``(inv_start, inv_step)``, each ``[B, 1, h, w]``.

@@ -99,7 +99,22 @@ class PVSNetConfig:
     )
     prior_halfwidth: float = field(
         default=0.3,
-        metadata={"help": "coarse search half-width around the sparse prior, relative to its inverse depth"},
+        metadata={
+            "help": "coarse search half-width around the sparse prior, relative to its inverse depth, "
+            "where a hint lies within 1 coarse pixel (see prior_growth)"
+        },
+    )
+    prior_growth: float = field(
+        default=2.0,
+        metadata={
+            "help": "the prior's half-width is multiplied by this factor for each radius of "
+            "prior_growth_radii within which a pixel has no hint, so pixels far from every SfM point "
+            "search a wider window (up to the global range); 1 = a fixed half-width"
+        },
+    )
+    prior_growth_radii: tuple[int, ...] = field(
+        default=(8, 16),
+        metadata={"help": "radii (coarse pixels, Chebyshev) of prior_growth, each >= 1"},
     )
     normalized_channels: int = field(
         default=0,
@@ -195,6 +210,14 @@ class PVSNetConfig:
         need(
             0.0 < self.prior_halfwidth < 1.0,
             f"prior_halfwidth must be in (0, 1), got {self.prior_halfwidth}",
+        )
+        need(
+            1.0 <= self.prior_growth <= 4.0,
+            f"prior_growth must be in [1, 4], got {self.prior_growth}",
+        )
+        need(
+            all(int(r) == r and r >= 1 for r in self.prior_growth_radii),
+            f"prior_growth_radii must be integers >= 1, got {self.prior_growth_radii!r}",
         )
         need(
             0 <= self.normalized_channels <= 8,

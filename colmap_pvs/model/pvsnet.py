@@ -31,6 +31,7 @@ from ..errors import ShapeError
 from .cascade import (
     Regression,
     next_stage_range,
+    prior_halfwidth_map,
     prior_plane_range,
     probability_confidence,
     regress_inverse_depth,
@@ -245,10 +246,12 @@ class PVSNet(nn.Module):
         D = cfg.planes_per_stage[0]
         K = scale_intrinsics(intrinsics, 0.25)
         if use_prior:
-            prior_inv = densify_inverse_depth(downsample_sparse_depth(hints_full, 4))
-            inv_start, inv_step = prior_plane_range(
-                prior_inv, cfg.prior_halfwidth, D, inv_lo=inv_lo, inv_hi=inv_hi
+            hint_coarse = downsample_sparse_depth(hints_full, 4)
+            prior_inv = densify_inverse_depth(hint_coarse)
+            halfwidth = prior_halfwidth_map(
+                hint_coarse, cfg.prior_halfwidth, cfg.prior_growth, cfg.prior_growth_radii
             )
+            inv_start, inv_step = prior_plane_range(prior_inv, halfwidth, D, inv_lo=inv_lo, inv_hi=inv_hi)
             plane_depths = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
         else:
             inv_start, inv_step = plane_range(depth_min, depth_max, D)
