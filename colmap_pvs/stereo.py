@@ -5,7 +5,7 @@ A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two pas
 - **photometric** (network): ``stereo/depth_maps/NAME.photometric.bin``,
   ``stereo/normal_maps/NAME.photometric.bin``, ``stereo/confidence_maps/NAME.photometric.bin``
   (probability mass of the network) and ``stereo/visibility_maps/NAME.bin`` (the network's learned
-  per-source visibility, ``[h/4, w/4, S]``, sources in the provenance file);
+  per-source visibility, ``[h/4, w/4, S]`` at the network size, sources in the provenance file);
 - **geometric** (``geom_consistency``, on by default), once every photometric map exists: each
   reference's photometric depth is checked forward-backward against its sources' photometric maps
   (:mod:`colmap_pvs.consistency`), consulting only the sources the network found visible; pixels that

@@ -341,15 +341,17 @@ def test_config_validation():
 
 
 def test_prior_halfwidth_grows_away_from_hints():
-    hint = torch.zeros(1, 1, 40, 40)
+    hint = torch.zeros(1, 1, 80, 80)
     hint[0, 0, 5, 5] = 2.0
     r = prior_halfwidth_map(hint, 0.3, 2.0, (8, 16))
     assert r.shape == hint.shape
-    torch.testing.assert_close(r[0, 0, 5, 13], torch.tensor(0.3))  # within 8 (Chebyshev)
-    torch.testing.assert_close(r[0, 0, 13, 13], torch.tensor(0.3))
-    torch.testing.assert_close(r[0, 0, 5, 14], torch.tensor(0.6))  # 9 away: beyond the first radius
-    torch.testing.assert_close(r[0, 0, 21, 5], torch.tensor(0.6))  # 16 away
-    torch.testing.assert_close(r[0, 0, 22, 30], torch.tensor(1.2))  # beyond both
+    torch.testing.assert_close(r[0, 0, 5, 5], torch.tensor(0.3))  # every pixel within 8 of it is near
+    torch.testing.assert_close(r[0, 0, 60, 60], torch.tensor(1.2))  # beyond both radii, all around
+    torch.testing.assert_close(r[0, 0, 5, 30], torch.tensor(1.2))  # 25 away: beyond both radii
+    assert 0.3 < float(r[0, 0, 5, 17]) < 1.2  # 12 away: between, on a ramp
+    diagonal = r[0, 0, torch.arange(80), torch.arange(80)]
+    assert torch.all(diagonal[1:] >= diagonal[:-1] - 1e-6)  # widens with the distance, without steps
+    assert torch.all(diagonal[1:] / diagonal[:-1] < 1.2)
     torch.testing.assert_close(prior_halfwidth_map(hint, 0.3, 1.0, (8, 16)), torch.full_like(hint, 0.3))
     # a per-pixel half-width widens only those pixels' windows (clipped to the global range)
     prior = torch.full((1, 1, 1, 2), 0.5)

@@ -104,15 +104,20 @@ def prior_halfwidth_map(
         hint: ``[B, 1, h, w]`` sparse depth at the coarse resolution (0 = no hint).
         halfwidth: ``r0``, the half-width near hints.
         growth: ``g``; a pixel with no hint within ``k`` of the ``radii`` (pixels, Chebyshev
-            distance) gets ``r0 * g**k``.
+            distance) gets ``r0 * g**k``, with ``k`` box-blurred over ``2 min(radii) + 1`` pixels
+            (so the window widens gradually; far inside a region ``k`` is exact).
 
     Returns ``[B, 1, h, w]``; all ``r0`` when ``g == 1``.
     """
     has = (hint > 0).to(hint.dtype)
     misses = torch.zeros_like(has)
-    if growth != 1.0:
+    if growth != 1.0 and radii:
         for radius in radii:
             misses = misses + (F.max_pool2d(has, 2 * radius + 1, stride=1, padding=radius) <= 0).to(has.dtype)
+        # A box blur over the smallest radius turns the square steps of the count into ramps: a
+        # step in the window shows as a step in the depth.
+        r = min(radii)
+        misses = F.avg_pool2d(misses, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
     return halfwidth * growth**misses
 
 
