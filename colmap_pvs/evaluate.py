@@ -344,9 +344,9 @@ def find_gt_depth(gt_dir: Path, name: str, pattern: str = "{stem}") -> Path | No
             f"gt_pattern {pattern!r} is not a valid pattern ({exc!r}); use {{name}}/{{stem}}"
         ) from None
     base = Path(gt_dir) / rel
-    if base.suffix.lower() in GT_EXTENSIONS:
-        return base if base.is_file() else None
-    for ext in GT_EXTENSIONS:
+    if base.suffix.lower() in GT_EXTENSIONS and base.is_file():
+        return base
+    for ext in GT_EXTENSIONS:  # also NAME.png.npy, as the demo writes its GT
         candidate = base.with_name(base.name + ext)
         if candidate.is_file():
             return candidate

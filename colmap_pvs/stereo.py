@@ -80,7 +80,8 @@ Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
-    "num_views", "max_image_size", "network_scale", "min_confidence", "sparse_guidance", "sparse_prior",
+    "num_views", "max_image_size", "network_scale", "network_min_size", "min_confidence", "sparse_guidance",
+    "sparse_prior",
 )
 #: Settings that change the geometric maps (with the photometric fingerprints they read).
 GEOMETRIC_SETTINGS = (
@@ -109,6 +110,13 @@ class StereoConfig:
         metadata={
             "help": "run the network at this fraction of the map size (0.25-1) and bring its depth "
             "back to the map size by image-guided upsampling; maps keep max_image_size"
+        },
+    )
+    network_min_size: int = field(
+        default=400,
+        metadata={
+            "help": "network_scale never takes the network's longest side below this (px), nor below "
+            "the map's: small images keep their detail"
         },
     )
     checkpoint: Path | None = field(
@@ -210,6 +218,7 @@ class StereoConfig:
         check_range("num_views", self.num_views, low=2)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("network_scale", self.network_scale, low=0.25, high=1.0)
+        check_range("network_min_size", self.network_min_size, low=16)
         check_range("threads", self.threads, low=0)
         check_range("min_sources", self.min_sources, low=1)
         check_range("adapt_steps", self.adapt_steps, low=0)
@@ -496,9 +505,10 @@ class StereoContext:
                 max(1, min(m, int(np.floor(cam.height * s + 0.5)))))
 
     def network_size(self, name: str) -> tuple[int, int]:
-        """``(W, H)`` the network runs at for ``name``: ``network_scale`` times its map size."""
+        """``(W, H)`` the network runs at for ``name``: ``network_scale`` times its map size, its
+        longest side not below ``min(network_min_size, the map's)``."""
         w, h = self.map_size(name)
-        s = self.config.network_scale
+        s = max(self.config.network_scale, min(1.0, self.config.network_min_size / max(w, h)))
         if s >= 1.0:
             return w, h
         return max(16, int(np.floor(w * s + 0.5))), max(16, int(np.floor(h * s + 0.5)))

@@ -136,6 +136,11 @@ def test_find_gt_depth_patterns(tmp_path):
     assert find_gt_depth(tmp_path, "sub/a.jpg", "{name}") == tmp_path / "sub" / "a.jpg.png"
     assert find_gt_depth(tmp_path, "frame2.jpg") is None
     assert find_gt_depth(tmp_path, "x.jpg", "frame1.npy".replace("frame1", "{stem}")) is None
+    # a name with a GT-like extension: the demo's NAME.png.npy is found with {name}
+    np.save(tmp_path / "000.png.npy", np.ones((2, 2)))
+    assert find_gt_depth(tmp_path, "000.png", "{name}") == tmp_path / "000.png.npy"
+    cv2.imwrite(str(tmp_path / "001.png"), np.ones((2, 2), np.uint16))
+    assert find_gt_depth(tmp_path, "001.png", "{name}") == tmp_path / "001.png"  # the file itself first
     with pytest.raises(ConfigError, match="gt_pattern"):
         find_gt_depth(tmp_path, "x.jpg", "{bad}")
 

@@ -304,7 +304,7 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
 
     monkeypatch.setattr(stereo_module, "estimate_depth", spy)
     cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
-                       min_confidence=0.0, network_scale=0.5, geom_consistency=False)
+                       min_confidence=0.0, network_scale=0.5, network_min_size=16, geom_consistency=False)
     res = run_stereo(cfg)
     names = sorted(res.processed)
     assert names and "upsample" in res.timings
@@ -321,3 +321,7 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
     again = run_stereo(dataclasses.replace(cfg, network_scale=1.0))
     assert sorted(again.processed) == names and all(tuple(s) == (48, 64) for s, _, _ in seen)
     assert "upsample" not in again.timings
+    # network_min_size: the network's longest side stays >= 40 px (scale 0.625 here, not 0.5)
+    seen.clear()
+    run_stereo(dataclasses.replace(cfg, network_min_size=40))
+    assert all(tuple(s) == (30, 40) for s, _, _ in seen)
