@@ -82,7 +82,7 @@ def guided_upsample_depth(
             ok = valid[rows[:, None], cols[None, :]]
             weights.append(np.where(ok, np.clip(wy, 0, 1)[:, None] * np.clip(wx, 0, 1)[None, :] * wc, 0.0))
             values.append(inv[rows[:, None], cols[None, :]])
-    wts, vals = np.stack(weights), np.stack(values)  # [9, H, W]
+    wts, vals = np.stack(weights), np.stack(values)  # [4, H, W]
     best = np.take_along_axis(vals, np.argmax(wts, axis=0)[None], axis=0)[0]
     near = np.abs(vals - best[None]) <= max_relative_spread * best[None]
     wts = np.where(near, wts, 0.0)

@@ -101,7 +101,7 @@ class PVSNetConfig:
         default=0.3,
         metadata={
             "help": "coarse search half-width around the sparse prior, relative to its inverse depth, "
-            "where a hint lies within 1 coarse pixel (see prior_growth)"
+            "near sparse hints (see prior_growth)"
         },
     )
     prior_growth: float = field(
