@@ -14,7 +14,6 @@ pixels within 1 / 2 / 5 % for the photometric and (when written) the geometric m
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
@@ -27,13 +26,6 @@ from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
 from colmap_pvs.views import ViewSelectionConfig, select_views
-
-
-def _value(text: str):
-    try:
-        return json.loads(text)
-    except ValueError:
-        return text
 
 
 def main() -> int:
@@ -60,8 +52,8 @@ def main() -> int:
     sparse = rd.build_model(a.data, work, a.threads)
     model = read_sparse_model(sparse)
     names = sorted(model.image_ids_by_name)
-    view_fields = {k: _value(v) for k, v in (kv.split("=", 1) for kv in a.views)}
-    view_cfg = config_from_dict(ViewSelectionConfig, {"num_views": a.num_views, **view_fields})
+    view_fields = {"num_views": a.num_views, **rd.parse_overrides(a.views)}
+    view_cfg = config_from_dict(ViewSelectionConfig, view_fields)
     sel = select_views(model, view_cfg)
     refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
     settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in refs})]
@@ -72,7 +64,7 @@ def main() -> int:
             row = dict(zip(ref.ranked_names, ref.ranked_scores, strict=True))
             far[r] = list(ref.ranked_names)[: a.num_views - 3] + rd.far_sources(names.index(r), names, row, 2)
         settings.append(("disturbed", far))
-    extra = dict(kv.split("=", 1) for kv in a.stereo)
+    extra = rd.parse_overrides(a.stereo)
     for label, sources in settings:
         ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
@@ -84,7 +76,7 @@ def main() -> int:
             "threads": a.threads,
             "overwrite": True,
             "device": "cpu",
-            **{k: _value(v) for k, v in extra.items()},
+            **extra,
         }
         start = time.perf_counter()
         result = run_stereo(config_from_dict(StereoConfig, fields))

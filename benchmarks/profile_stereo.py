@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import json
 import resource
 import shutil
 import sys
@@ -72,13 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         "previews": args.previews,
         "geom_consistency": not args.no_geom,
     }
-    for item in args.stereo:
-        key, _, value = item.partition("=")
-        try:
-            fields[key] = json.loads(value)
-        except ValueError:
-            fields[key] = value
-    res = run_stereo(config_from_dict(StereoConfig, fields))
+    res = run_stereo(config_from_dict(StereoConfig, {**fields, **real_depth.parse_overrides(args.stereo)}))
     wall = time.perf_counter() - start
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     n_photo = len(res.processed) + len(res.auxiliary)

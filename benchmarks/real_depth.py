@@ -109,6 +109,19 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     return model_dir
 
 
+def parse_overrides(items: list[str]) -> dict:
+    """``["key=value", ...]`` from a ``--stereo`` / ``--views`` flag as a dict; values parsed as JSON
+    where they are (``true``, ``0.8``, ``[8, 16]``), else kept as strings."""
+    out = {}
+    for item in items:
+        key, _, text = item.partition("=")
+        try:
+            out[key] = json.loads(text)
+        except ValueError:
+            out[key] = text
+    return out
+
+
 def make_workspace(root: Path, images: Path, sparse: Path) -> Path:
     """A dense workspace with linked images/ and sparse/ and an empty stereo/."""
     root.mkdir(parents=True, exist_ok=True)

@@ -672,32 +672,29 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
     return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis
 
 
-def upsample_visibility(vis: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``[S, h, w]`` coarse visibility to ``[S, H, W]`` (bilinear, half-pixel centres)."""
-    import cv2
+def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
+                depth_range, timings, vis=None, sources=()) -> None:
+    """Write one pass's maps (the depth last: it marks the pass done), then its previews.
 
-    if vis.shape[0] == 0:
-        return np.zeros((0, height, width), np.float32)
-    return np.stack([cv2.resize(v, (width, height), interpolation=cv2.INTER_LINEAR) for v in vis])
-
-
-def _write_photometric(ws: Workspace, name: str, depth, normals, conf, vis, settings, extra, previews,
-                       sources, depth_range, timings) -> None:
+    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``. Preview
+    names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
+    """
     t0 = time.perf_counter()
-    write_array(ws.confidence_map_path(name, "photometric"), conf.astype(np.float32))
-    write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
-                np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
-    write_normal_map(ws.normal_map_path(name, "photometric"), normals)
-    _write_provenance(ws, name, "photometric", settings, extra)
-    write_depth_map(ws.depth_map_path(name, "photometric"), depth)  # last: marks the pass done
+    write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
+    if vis is not None:
+        write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
+                    np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
+    write_normal_map(ws.normal_map_path(name, stage), normals)
+    _write_provenance(ws, name, stage, settings, extra)
+    write_depth_map(ws.depth_map_path(name, stage), depth)  # last: marks the pass done
     timings["writes"] = time.perf_counter() - t0
     if previews:
         t0 = time.perf_counter()
         out = ws.stereo_dir / "previews"
-        save_depth_preview(out / f"{name}.photometric.depth.png", depth, vmin=depth_range[0],
-                           vmax=depth_range[1])
-        save_normal_preview(out / f"{name}.photometric.normal.png", normals)
-        save_scalar_preview(out / f"{name}.photometric.confidence.png", conf)
+        stem = out / (f"{name}.photometric" if stage == "photometric" else name)
+        save_depth_preview(f"{stem}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
+        save_normal_preview(f"{stem}.normal.png", normals)
+        save_scalar_preview(f"{stem}.confidence.png", conf)
         for k, src in enumerate(sources):
             save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
         timings["previews"] = time.perf_counter() - t0
@@ -758,8 +755,8 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     timings["normals"] = time.perf_counter() - t0
     extra = {"image_size": list(size), "sources": sources}
-    ctx.submit_write(_write_photometric, ws, name, depth, normals, conf, vis, settings, extra, cfg.previews,
-                     sources, entry.depth_range, timings)
+    ctx.submit_write(_write_pass, ws, name, "photometric", depth, normals, conf, settings, extra,
+                     cfg.previews, entry.depth_range, timings, vis, sources)
     return RefOutcome(name, "photometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 
@@ -792,23 +789,6 @@ def _load_photometric(ctx: StereoContext, name: str):
     h, w = depth.shape
     T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
     return SourceMaps(depth, normals, ctx.map_K(name, (w, h)), T)
-
-
-def _write_geometric(ws: Workspace, name: str, depth, normals, conf, settings, extra, previews, depth_range,
-                     timings) -> None:
-    t0 = time.perf_counter()
-    write_array(ws.confidence_map_path(name, "geometric"), conf)
-    write_normal_map(ws.normal_map_path(name, "geometric"), normals)
-    _write_provenance(ws, name, "geometric", settings, extra)
-    write_depth_map(ws.depth_map_path(name, "geometric"), depth)  # last: marks the pass done
-    timings["writes"] = time.perf_counter() - t0
-    if previews:
-        t0 = time.perf_counter()
-        out = ws.stereo_dir / "previews"
-        save_depth_preview(out / f"{name}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
-        save_normal_preview(out / f"{name}.normal.png", normals)
-        save_scalar_preview(out / f"{name}.confidence.png", conf)
-        timings["previews"] = time.perf_counter() - t0
 
 
 def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
@@ -853,7 +833,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         coarse = read_array(vis_path)
         coarse = coarse[..., None] if coarse.ndim == 2 else coarse
         if coarse.shape[2] == len(all_sources):  # views the network did not see count as visible
-            up = upsample_visibility(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
+            up = resize_bilinear(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
             ones = np.ones((h, w), np.float32)
             vis = np.stack([up[all_sources.index(s)] if s in all_sources else ones for s in sources])
     timings["load"] = time.perf_counter() - t0
@@ -884,8 +864,8 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
              "kept_fraction": float(keep.mean())}
-    ctx.submit_write(_write_geometric, ws, name, depth, normals, conf, settings, extra, cfg.previews, dr,
-                     timings)
+    ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
+                     dr, timings)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 

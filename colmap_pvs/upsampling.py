@@ -80,7 +80,7 @@ def guided_upsample_depth(
             diff = guide - low[rows[:, None], cols[None, :]]
             wc = np.exp(-np.einsum("ijk,ijk->ij", diff, diff) / (2 * sigma_color**2))
             ok = valid[rows[:, None], cols[None, :]]
-            weights.append(np.where(ok, np.clip(wy, 0, 1)[:, None] * np.clip(wx, 0, 1)[None, :] * wc, 0.0))
+            weights.append(np.where(ok, wy[:, None] * wx[None, :] * wc, 0.0))  # u, v clipped: in [0, 1]
             values.append(inv[rows[:, None], cols[None, :]])
     wts, vals = np.stack(weights), np.stack(values)  # [4, H, W]
     best = np.take_along_axis(vals, np.argmax(wts, axis=0)[None], axis=0)[0]

@@ -889,7 +889,8 @@ def resolve_sources(
         others = np.array([j for j in range(len(all_names)) if j != k], dtype=np.int64)
         ordered = tuple(all_names[j] for j in others[np.lexsort((others, -row[others]))])
         if selected is not None:  # the selection's order first (coverage-aware), then the rest
-            ordered = selected.ranked_names + tuple(n for n in ordered if n not in selected.ranked_names)
+            first = set(selected.ranked_names)
+            ordered = selected.ranked_names + tuple(n for n in ordered if n not in first)
         return ordered
     raise WorkspaceError(f"unknown source mode {mode!r}; expected 'explicit', 'auto' or 'all'")
 
