@@ -798,9 +798,14 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     prov = read_provenance(ws, name, "photometric")
     if prov is None or not ws.depth_map_path(name, "photometric").is_file():
         return RefOutcome(name, "geometric", "skipped", "its photometric maps do not exist")
+    source_prov: dict[str, dict] = {}  # each source's provenance, read once
+
     def has_maps(s: str) -> bool:
-        path = ws.depth_map_path(s, "photometric")
-        return path.is_file() and read_provenance(ws, s, "photometric") is not None
+        if s not in source_prov and ws.depth_map_path(s, "photometric").is_file():
+            found = read_provenance(ws, s, "photometric")
+            if found is not None:
+                source_prov[s] = found
+        return s in source_prov
 
     sources = [s for s in prov.get("sources", []) if has_maps(s)]
     missing = [s for s in prov.get("sources", []) if s not in sources]
@@ -814,7 +819,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     settings = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
     settings.update(
         reference=prov["fingerprint"],
-        sources={s: read_provenance(ws, s, "photometric")["fingerprint"] for s in sources},
+        sources={s: source_prov[s]["fingerprint"] for s in sources},
     )
     size = tuple(prov.get("image_size", ctx.map_size(name)))
     if not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size):
