@@ -66,6 +66,7 @@ from .io.maps import (
 from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
 from .model.runtime import check_memory_budget
 from .normals import depth_to_normals, fit_normals
+from .prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
 from .types import Image, SparseModel
 from .upsampling import guided_upsample_depth, resize_bilinear
 from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
@@ -75,13 +76,13 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 2, "geometric": 4}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 4}
 Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
     "num_views", "max_image_size", "network_scale", "network_min_size", "min_confidence", "sparse_guidance",
-    "sparse_prior",
+    "sparse_prior", "prior_blend_texture", "prior_blend_window", "prior_agreement_scale",
 )
 #: Settings that change the geometric maps (with the photometric fingerprints they read).
 GEOMETRIC_SETTINGS = (
@@ -125,8 +126,12 @@ class StereoConfig:
     device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device"})
     overwrite: bool = field(default=False, metadata={"help": "recompute images whose maps already exist"})
     min_confidence: float = field(
-        default=0.3,
-        metadata={"help": "photometric pass: pixels with network confidence below this are set invalid"},
+        default=0.0,
+        metadata={
+            "help": "photometric pass: pixels with confidence (the network's probability mass times its "
+            "agreement with the sparse prior, see prior_agreement_scale) below this are set invalid; "
+            "0 keeps the maps dense and leaves the filtering to the geometric pass"
+        },
     )
     sparse_guidance: Literal["checkpoint", "on", "off"] = field(
         default="checkpoint",
@@ -137,6 +142,24 @@ class StereoConfig:
         metadata={
             "help": "centre the coarse depth hypotheses on the interpolated sparse points "
             "(off: the image's global depth range everywhere)"
+        },
+    )
+    prior_blend_texture: float = field(
+        default=0.01,
+        metadata={
+            "help": "photometric pass: where the image's grey-level standard deviation (0-1 scale, over "
+            "prior_blend_window pixels) is below this, the depth moves towards the sparse prior in log "
+            "depth, all the way where the image is flat (0 = off)"
+        },
+    )
+    prior_blend_window: int = field(
+        default=7, metadata={"help": "photometric pass: window (map pixels, odd) of prior_blend_texture"}
+    )
+    prior_agreement_scale: float = field(
+        default=0.05,
+        metadata={
+            "help": "photometric pass: the confidence is multiplied by exp(-|log(d / prior)| / this), "
+            "the network's agreement with the sparse prior (0 = the network's probability mass alone)"
         },
     )
     previews: bool = field(
@@ -217,6 +240,10 @@ class StereoConfig:
 
         check_range("num_views", self.num_views, low=2)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
+        check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
+        if self.prior_blend_window < 1 or self.prior_blend_window % 2 == 0:
+            raise ConfigError(f"prior_blend_window must be an odd number >= 1, got {self.prior_blend_window}")
         check_range("network_scale", self.network_scale, low=0.25, high=1.0)
         check_range("network_min_size", self.network_min_size, low=16)
         check_range("threads", self.threads, low=0)
@@ -655,8 +682,8 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
         depth_range: ``(d_min, d_max)``; sparse_depth: ``[H, W]`` (0 = no point).
 
     Returns:
-        depth ``[H, W]``, confidence ``[H, W]`` and coarse visibility ``[N-1, ceil(H/4), ceil(W/4)]``,
-        numpy.
+        depth ``[H, W]``, confidence ``[H, W]``, coarse visibility ``[N-1, ceil(H/4), ceil(W/4)]`` and
+        the sparse prior's coarse depth ``[ceil(H/4), ceil(W/4)]`` (``None`` without one), numpy.
     """
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)[None]  # noqa: E731
     with torch.inference_mode():
@@ -669,7 +696,8 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
             sparse_depth=t(sparse_depth)[:, None],
         )
     vis = out.visibility[0].float().cpu().numpy()
-    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis
+    prior = None if out.prior_depth is None else out.prior_depth[0].float().cpu().numpy()
+    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis, prior
 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
@@ -732,7 +760,8 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
     try:
         if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
             check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
-        depth, conf, vis = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse, ctx.device)
+        depth, conf, vis, prior = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse,
+                                                 ctx.device)
     except (RuntimeError, MemoryError) as exc:
         if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
             raise
@@ -746,9 +775,19 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
         depth = guided_upsample_depth(depth, guide)
         conf = resize_bilinear(np.nan_to_num(conf, nan=0.0), h, w)
         timings["upsample"] = time.perf_counter() - t0
+    conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
+    if prior is not None and (cfg.prior_blend_texture > 0 or cfg.prior_agreement_scale > 0):
+        t0 = time.perf_counter()
+        prior = upsample_prior(prior, net_size, size)
+        conf = conf * prior_agreement(depth, prior, cfg.prior_agreement_scale)
+        if cfg.prior_blend_texture > 0:
+            rgb = guide if guide is not None else images[0]
+            gray = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), rgb, axes=1)
+            weight = texture_weight(gray, cfg.prior_blend_window, cfg.prior_blend_texture)
+            depth = blend_with_prior(depth, prior, weight)
+        timings["prior_blend"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
-    conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     timings["confidence"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     normals = depth_to_normals(depth, ctx.map_K(name, size))

@@ -16,6 +16,7 @@ from colmap_pvs.model.cascade import (
     regress_inverse_depth,
 )
 from colmap_pvs.model.cost import (
+    affine_fill_inverse_depth,
     densify_inverse_depth,
     downsample_sparse_depth,
     group_correlation,
@@ -297,6 +298,40 @@ def test_densify_inverse_depth_keeps_hints_and_fills_between():
     one = torch.zeros(1, 1, 6, 6)
     one[0, 0, 4, 2] = 5.0
     torch.testing.assert_close(densify_inverse_depth(one), torch.full((1, 1, 6, 6), 0.2))
+
+
+def test_affine_fill_is_exact_on_a_plane_where_push_pull_is_not():
+    # A slanted plane: inverse depth affine in the image; hints at scattered pixels of it.
+    h, w = 40, 56
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                            indexing="ij")
+    inv = 0.3 + 0.004 * xs + 0.002 * ys
+    gen = torch.Generator().manual_seed(0)
+    picks = torch.randperm(h * w, generator=gen)[:60]
+    hint = torch.zeros(1, 1, h, w)
+    hint.view(-1)[picks] = 1.0 / inv.view(-1)[picks]
+    affine = affine_fill_inverse_depth(hint)
+    assert affine.shape == hint.shape and torch.isfinite(affine).all()
+    affine_err = ((affine[0, 0] - inv).abs() / inv).max()
+    push_pull_err = ((densify_inverse_depth(hint)[0, 0] - inv).abs() / inv).max()
+    assert affine_err < 0.01 < push_pull_err  # push-pull averages hints: off by the slope
+
+
+def test_affine_fill_degenerate_inputs():
+    # No hints: no prior (zeros), per image of the batch.
+    hint = torch.zeros(2, 1, 12, 16)
+    hint[1, 0, 5, 7] = 4.0  # one hint: a constant fill (the slopes are damped, not undetermined)
+    out = affine_fill_inverse_depth(hint)
+    assert torch.all(out[0] == 0)
+    torch.testing.assert_close(out[1], torch.full((1, 12, 16), 0.25), rtol=1e-4, atol=1e-6)
+    # Two hints: the steepest slope there is, yet the fit never leaves the range the hints span.
+    two = torch.zeros(1, 1, 30, 30)
+    two[0, 0, 14, 14], two[0, 0, 15, 15] = 1.0, 2.0  # inverse depths 1 and 0.5
+    out = affine_fill_inverse_depth(two)
+    assert torch.isfinite(out).all() and torch.all(out >= 0.375 - 1e-6) and torch.all(out <= 1.125 + 1e-6)
+    assert out[0, 0, 14, 14] > out[0, 0, 15, 15] and out[0, 0, 0, 0] >= out[0, 0, -1, -1]  # along the slope
+    with pytest.raises(ShapeError):
+        affine_fill_inverse_depth(torch.zeros(1, 2, 4, 4))
 
 
 def test_prior_plane_range_windows_and_fallback():

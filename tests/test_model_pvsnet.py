@@ -196,11 +196,17 @@ def test_sparse_prior_confines_coarse_depth_to_the_hint_window():
         torch.testing.assert_close(plain.depth, base(*inputs).depth)
     check_output(out, model.config, 1, 3, 32, 48)
     # Coarse depths regress over planes inside prior * (1 +- r) in inverse depth, the prior lying
-    # between the two hint depths.
+    # between the two hints' inverse depths 1/3 and 1/2, widened by a quarter of their difference.
+    lo, hi = 1 / 3 - 1 / 24, 1 / 2 + 1 / 24
     for d in out.depths[:3]:
         inv = 1.0 / d
-        assert torch.all(inv <= (1 + r) / 2.0 + 1e-5) and torch.all(inv >= (1 - r) / 3.0 - 1e-5)
+        assert torch.all(inv <= (1 + r) * hi + 1e-5) and torch.all(inv >= (1 - r) * lo - 1e-5)
         assert d.max() - d.min() > 0.3  # the two halves stay apart
+    # The prior the planes were centred on comes out at H/4: near the hints' depths, 0 nowhere.
+    assert out.prior_depth is not None and out.prior_depth.shape == (1, 8, 12)
+    assert torch.all(out.prior_depth > 1 / hi - 1e-3) and torch.all(out.prior_depth < 1 / lo + 1e-3)
+    assert out.prior_depth[0, 0].mean() < 2.2 and out.prior_depth[0, -1].mean() > 2.8
+    assert plain.prior_depth is None
 
 
 def test_import_sets_no_global_torch_state():

@@ -325,3 +325,46 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
     seen.clear()
     run_stereo(dataclasses.replace(cfg, network_min_size=40))
     assert all(tuple(s) == (30, 40) for s, _, _ in seen)
+
+
+def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_path, tiny_checkpoint,
+                                                           monkeypatch):
+    """A flat image takes the sparse prior's depth; a network far from the prior loses its confidence."""
+    from colmap_pvs.prior import upsample_prior
+
+    ws = _copy(synthetic_ws, tmp_path)
+    real = stereo_module.estimate_depth
+
+    def flat_and_off(model, images, intrinsics, poses, depth_range, sparse_depth, device):
+        depth, conf, vis, prior = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
+        assert prior is not None
+        images[0][...] = 0.5  # the texture weight is read from these pixels after the network
+        h, w = images.shape[-2:]
+        off = 2.0 * upsample_prior(prior, (w, h), (w, h))  # the "network": twice the prior's depth
+        return off.astype(np.float32), np.ones_like(conf), vis, prior
+
+    monkeypatch.setattr(stereo_module, "estimate_depth", flat_and_off)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                       min_confidence=0.0, sparse_prior="on", geom_consistency=False)
+    res = run_stereo(cfg)
+    names = sorted(res.processed)
+    assert names and "prior_blend" in res.timings
+    ws_obj, _ = load_workspace(ws)
+
+    def maps():
+        return {n: (read_depth_map(ws_obj.depth_map_path(n, "photometric")),
+                    read_array(ws_obj.confidence_map_path(n, "photometric"))) for n in names}
+
+    on = maps()
+    # both are photometric settings: turned off, the maps are recomputed from the network alone
+    again = run_stereo(dataclasses.replace(cfg, prior_blend_texture=0.0, prior_agreement_scale=0.0))
+    assert sorted(again.processed) == names and "prior_blend" not in again.timings
+    for name, (depth_off, conf_off) in maps().items():
+        depth_on, conf_on = on[name]
+        has = (depth_on > 0) & (depth_off > 0)
+        assert has.mean() > 0.9
+        # flat image: the prior's depth, half the network's
+        np.testing.assert_allclose(depth_off[has], 2.0 * depth_on[has], rtol=1e-4)
+        # a factor 2 from the prior: exp(-ln 2 / 0.05) ~ 1e-6 of the network's confidence (1)
+        assert conf_on[has].max() < 1e-5
+        np.testing.assert_allclose(conf_off[has], 1.0)

@@ -93,8 +93,15 @@ class PVSNetConfig:
         default=False,
         metadata={
             "help": "centre the coarse stage's hypotheses per pixel on a dense prior interpolated "
-            "(push-pull, inverse depth) from the sparse depth hints, +- prior_halfwidth; pixels of an "
+            "(see prior_fill) from the sparse depth hints, +- prior_halfwidth; pixels of an "
             "image without hints use the global range"
+        },
+    )
+    prior_fill: Literal["affine", "push_pull"] = field(
+        default="affine",
+        metadata={
+            "help": "how the sparse prior is interpolated between hints, in inverse depth: a local "
+            "affine fit (exact on planes) or push-pull (a pyramid of hint averages)"
         },
     )
     prior_halfwidth: float = field(

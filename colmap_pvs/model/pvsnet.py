@@ -38,6 +38,7 @@ from .cascade import (
 )
 from .config import NETWORK_STRIDE, PVSNetConfig
 from .cost import (
+    affine_fill_inverse_depth,
     correlate_into,
     correlation_reference,
     densify_inverse_depth,
@@ -78,6 +79,8 @@ class PVSNetOutput:
             coarse ResNet, coarse U-Net 1, coarse U-Net 2 (``s = 4``), then each cascade stage
             (``s = 2, 1``). Same order as ``config.loss_weights``.
         confidences: the matching per-output confidence maps.
+        prior_depth: ``[B, ceil(H/4), ceil(W/4)]`` the sparse prior's dense depth the coarse planes
+            were centred on (0 where it has none), or ``None`` without ``config.sparse_prior`` or hints.
     """
 
     depth: torch.Tensor
@@ -85,6 +88,7 @@ class PVSNetOutput:
     visibility: torch.Tensor
     depths: list[torch.Tensor] = field(default_factory=list)
     confidences: list[torch.Tensor] | None = None
+    prior_depth: torch.Tensor | None = None
 
 
 def _shape(t: torch.Tensor) -> str:
@@ -247,7 +251,10 @@ class PVSNet(nn.Module):
         K = scale_intrinsics(intrinsics, 0.25)
         if use_prior:
             hint_coarse = downsample_sparse_depth(hints_full, 4)
-            prior_inv = densify_inverse_depth(hint_coarse)
+            if cfg.prior_fill == "affine":
+                prior_inv = affine_fill_inverse_depth(hint_coarse)
+            else:
+                prior_inv = densify_inverse_depth(hint_coarse)
             halfwidth = prior_halfwidth_map(
                 hint_coarse, cfg.prior_halfwidth, cfg.prior_growth, cfg.prior_growth_radii
             )
@@ -345,12 +352,17 @@ class PVSNet(nn.Module):
             visibility = torch.cat(vis_maps, 1)[:, :, :hc, :wc]
         else:
             visibility = torch.ones(B, N - 1, hc, wc, dtype=dtype, device=device)
+        prior_depth = None
+        if use_prior:
+            inv = prior_inv[:, 0, :hc, :wc]
+            prior_depth = torch.where(inv > 0, 1.0 / inv.clamp_min(1e-12), torch.zeros_like(inv))
         return PVSNetOutput(
             depth=final_depth,
             confidence=final_conf,
             visibility=visibility,
             depths=depths,
             confidences=confidences,
+            prior_depth=prior_depth,
         )
 
     # ------------------------------------------------------------------ helpers
