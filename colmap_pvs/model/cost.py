@@ -142,10 +142,45 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, r, r)), k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
-def _box_max(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Maximum over the ``(2r+1)^2`` box around each pixel of ``[B, C, h, w]`` (separable)."""
+def _pool_factor(sigma: float) -> int:
+    """The largest power of 2 not above ``sigma / 2``: the grid step at which scale ``sigma`` is computed."""
+    f = 1
+    while 2 * f <= sigma / 2.0:
+        f *= 2
+    return f
+
+
+def _blurred_sums(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """:func:`_gaussian_blur` of sums ``[B, C, h, w]``, computed on a grid pooled by ``f ~ sigma / 2``.
+
+    Pooled cells hold exact sums; the kernel in cell units is ``sigma / f``, so the result keeps the
+    scale of a full-resolution blur (bilinear back to ``h x w``) at a fraction of the cost.
+    """
+    f = _pool_factor(sigma)
+    if f == 1:
+        return _gaussian_blur(x, sigma)
+    h, w = x.shape[-2:]
+    hp, wp = -(-h // f) * f, -(-w // f) * f
+    pooled = F.avg_pool2d(F.pad(x, (0, wp - w, 0, hp - h)), f) * float(f * f)
+    blurred = _gaussian_blur(pooled, sigma / f)
+    return F.interpolate(blurred, size=(hp, wp), mode="bilinear", align_corners=False)[..., :h, :w]
+
+
+def _box_max(x: torch.Tensor, r: int, f: int = 1) -> torch.Tensor:
+    """Maximum over the ``(2r+1)^2`` box around each pixel of ``[B, C, h, w]`` (separable).
+
+    With ``f > 1`` it is taken on ``f x f`` cells (the box grows by up to ``f - 1`` pixels a side).
+    """
+    h, w = x.shape[-2:]
+    if f > 1:
+        hp, wp = -(-h // f) * f, -(-w // f) * f
+        x = F.max_pool2d(F.pad(x, (0, wp - w, 0, hp - h), value=float("-inf")), f)
+        r = -(-r // f)
     x = F.max_pool2d(x, (1, 2 * r + 1), stride=1, padding=(0, r))
-    return F.max_pool2d(x, (2 * r + 1, 1), stride=1, padding=(r, 0))
+    x = F.max_pool2d(x, (2 * r + 1, 1), stride=1, padding=(r, 0))
+    if f > 1:
+        x = x.repeat_interleave(f, -2).repeat_interleave(f, -1)[..., :h, :w]
+    return x
 
 
 def affine_fill_inverse_depth(
@@ -158,15 +193,18 @@ def affine_fill_inverse_depth(
 
     Each pixel fits ``a + b x + c y`` to the hints' inverse depths with Gaussian weights around it,
     at the smallest scale of ``sigmas`` whose summed weight reaches ``min_weight`` (about that many
-    hints within one sigma). Inverse depth is affine in the image on a plane, so a wall between
-    hints is filled exactly, where an average of the hints (push-pull) is off by its slope. The
-    slopes are damped by ``slope_damping * weight * sigma**2`` so that one or two hints give a
-    near-constant fit. The fit is clipped to the range ``[lo, hi]`` of the hints within ``3 sigma``,
-    widened by a quarter of ``hi - lo`` on each side, so that an extrapolation (to the image border,
-    or across a depth edge) stays near the depths its hints span (measured on hololens-dev: the
-    quarter beats both no widening and a whole span). Pixels that no scale reaches (and fits that
-    are not positive) take :func:`densify_inverse_depth`. The hints themselves are smoothed like
-    every other pixel (SfM points are noisy).
+    hints within one sigma); between ``min_weight / 2`` and ``min_weight`` a scale's fit is blended
+    with the coarser scales' result, so the prior has no steps where the scale changes. Inverse
+    depth is affine in the image on a plane, so a wall between hints is filled exactly, where an
+    average of the hints (push-pull) is off by its slope. The slopes are damped by
+    ``slope_damping * weight * sigma**2`` so that one or two hints give a near-constant fit. The
+    fit is clipped to the range ``[lo, hi]`` of the hints within about ``3 sigma``, widened by a
+    quarter of ``hi - lo`` on each side, so that an extrapolation (to the image border, or across
+    a depth edge) stays near the depths its hints span (measured on hololens-dev: the quarter beats
+    both no widening and a whole span). Pixels that no scale reaches (and fits that are not
+    positive) take :func:`densify_inverse_depth` (where the image has hints at all). The hints
+    themselves are smoothed like every other pixel (SfM points are noisy). Scales of 4 pixels and
+    more are computed on a grid pooled by about ``sigma / 2`` (:func:`_blurred_sums`).
 
     Args:
         hint: ``[B, 1, h, w]`` sparse depth (0 = no hint).
@@ -187,14 +225,12 @@ def affine_fill_inverse_depth(
     Y, X = torch.meshgrid(ys, xs, indexing="ij")
     X, Y = X.expand(B, 1, h, w), Y.expand(B, 1, h, w)
     big = torch.finfo(hint.dtype).max
-    out = fallback.clone()
-    todo = torch.ones_like(m, dtype=torch.bool)
     eye = torch.eye(3, dtype=hint.dtype, device=hint.device)
+    moments = [m, m * X, m * Y, m * X * X, m * X * Y, m * Y * Y, m * z, m * X * z, m * Y * z]
+    moments = torch.cat(moments, 1)
+    fits, alphas = [], []
     for sigma in sigmas:
-        if not bool(todo.any()):
-            break
-        moments = [m, m * X, m * Y, m * X * X, m * X * Y, m * Y * Y, m * z, m * X * z, m * Y * z]
-        mom = _gaussian_blur(torch.cat(moments, 1), sigma)
+        mom = _blurred_sums(moments, sigma)
         S, Sx, Sy, Sxx, Sxy, Syy, Sz, Sxz, Syz = mom.unbind(1)
         x0, y0 = X[:, 0], Y[:, 0]
         # Moments about the pixel itself: the fit's constant term is then its value there.
@@ -208,13 +244,20 @@ def affine_fill_inverse_depth(
         sol, info = torch.linalg.solve_ex(A + 1e-12 * eye, rhs)
         fit = sol[..., 0, 0].unsqueeze(1)
         r = max(1, int(math.ceil(3.0 * sigma)))
-        hi = _box_max(torch.where(m > 0, z, torch.zeros_like(z)), r)
-        lo = -_box_max(torch.where(m > 0, -z, torch.full_like(z, -big)), r)
+        f = _pool_factor(sigma)
+        hi = _box_max(torch.where(m > 0, z, torch.zeros_like(z)), r, f)
+        lo = -_box_max(torch.where(m > 0, -z, torch.full_like(z, -big)), r, f)
         span = 0.25 * (hi - lo).clamp_min(0.0)
         fit = torch.minimum(torch.maximum(fit, lo - span), hi + span)
-        ok = todo & (S.unsqueeze(1) >= min_weight) & (info.view(B, 1, h, w) == 0) & (fit > 0)
-        out = torch.where(ok, fit, out)
-        todo = todo & ~ok
+        # The weight ramps from 0 at min_weight / 2 to 1 at min_weight: scales hand over smoothly.
+        alpha = ((S.unsqueeze(1) - 0.5 * min_weight) / (0.5 * min_weight)).clamp(0.0, 1.0)
+        ok = (info.view(B, 1, h, w) == 0) & (fit > 0)
+        fits.append(torch.where(ok, fit, torch.zeros_like(fit)))
+        alphas.append(torch.where(ok, alpha, torch.zeros_like(alpha)))
+    # From the coarsest scale to the finest, each finer fit takes over where it has enough hints.
+    out = fallback
+    for fit, alpha in zip(reversed(fits), reversed(alphas), strict=True):
+        out = alpha * fit + (1.0 - alpha) * out
     return out
 
 
