@@ -2,9 +2,10 @@
 
 A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two passes:
 
-- **photometric** (network): ``stereo/depth_maps/NAME.photometric.bin``,
-  ``stereo/normal_maps/NAME.photometric.bin``, ``stereo/confidence_maps/NAME.photometric.bin``
-  (probability mass of the network) and ``stereo/visibility_maps/NAME.bin`` (the network's learned
+- **photometric** (network): ``stereo/depth_maps/NAME.photometric.bin`` (flat image regions moved
+  towards the sparse prior, :mod:`colmap_pvs.prior`), ``stereo/normal_maps/NAME.photometric.bin``,
+  ``stereo/confidence_maps/NAME.photometric.bin`` (probability mass of the network times its
+  agreement with the sparse prior) and ``stereo/visibility_maps/NAME.bin`` (the network's learned
   per-source visibility, ``[h/4, w/4, S]`` at the network size, sources in the provenance file);
 - **geometric** (``geom_consistency``, on by default), once every photometric map exists: each
   reference's photometric depth is checked forward-backward against its sources' photometric maps

@@ -16,7 +16,9 @@ from colmap_pvs.stereo import StereoConfig
 @pytest.mark.parametrize(
     ("key", "value"),
     [("min_confidence", 2), ("min_confidence", "nan"), ("min_confidence", -0.1), ("threads", -3),
-     ("num_views", 1), ("min_sources", 0), ("max_image_size", 8)],
+     ("num_views", 1), ("min_sources", 0), ("max_image_size", 8), ("prior_blend_texture", 2),
+     ("prior_blend_texture", -0.01), ("prior_agreement_scale", -1), ("prior_blend_window", 4),
+     ("prior_blend_window", 0)],
 )
 def test_stereo_config_refuses_bad_values(key, value):
     with pytest.raises(ConfigError, match=key):

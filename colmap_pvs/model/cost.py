@@ -133,7 +133,7 @@ def densify_inverse_depth(hint: torch.Tensor) -> torch.Tensor:
 
 
 def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``[B, C, h, w]`` with zero padding (weights sum over the image)."""
+    """Separable Gaussian blur of ``[B, C, h, w]``, zero padding, kernel peak 1 (a weighted sum)."""
     r = max(1, int(math.ceil(3.0 * sigma)))
     t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
     k = torch.exp(-(t * t) / (2.0 * sigma * sigma))
