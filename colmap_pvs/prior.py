@@ -49,6 +49,8 @@ def texture_weight(gray: np.ndarray, window: int, threshold: float) -> np.ndarra
     """``[H, W]`` in ``[0, 1]``: the grey-level std over ``window x window`` pixels, over ``threshold``.
 
     ``gray`` ``[H, W]`` in ``[0, 1]``. 1 means textured enough to match; ``threshold <= 0`` gives all ones.
+    The clipped ratio is smoothed by a Gaussian of ``sigma = (window - 1) / 2``: unsmoothed, the edges
+    of a flat door (textured, weight 1) kept the network's depth as thin lines across the blended door.
     """
     import cv2
 
@@ -60,7 +62,10 @@ def texture_weight(gray: np.ndarray, window: int, threshold: float) -> np.ndarra
     mean = cv2.blur(g, (window, window), borderType=cv2.BORDER_REFLECT)
     sq = cv2.blur(g * g, (window, window), borderType=cv2.BORDER_REFLECT)
     std = np.sqrt(np.maximum(sq - mean * mean, 0.0))
-    return np.clip(std / threshold, 0.0, 1.0).astype(np.float32)
+    weight = np.clip(std / threshold, 0.0, 1.0).astype(np.float32)
+    if window > 1:
+        weight = cv2.GaussianBlur(weight, (0, 0), (window - 1) / 2.0, borderType=cv2.BORDER_REFLECT)
+    return np.clip(weight, 0.0, 1.0)
 
 
 def blend_with_prior(depth: np.ndarray, prior: np.ndarray, weight: np.ndarray) -> np.ndarray:
