@@ -300,12 +300,17 @@ def test_densify_inverse_depth_keeps_hints_and_fills_between():
     torch.testing.assert_close(densify_inverse_depth(one), torch.full((1, 1, 6, 6), 0.2))
 
 
+def _slanted_plane_inverse_depth(h: int, w: int) -> torch.Tensor:
+    """``[h, w]`` inverse depth of a slanted plane: affine in the image, 0.004 per column, 0.002 per row."""
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                            indexing="ij")
+    return 0.3 + 0.004 * xs + 0.002 * ys
+
+
 def test_affine_fill_is_exact_on_a_plane_where_push_pull_is_not():
     # A slanted plane: inverse depth affine in the image; hints at scattered pixels of it.
     h, w = 40, 56
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
-                            indexing="ij")
-    inv = 0.3 + 0.004 * xs + 0.002 * ys
+    inv = _slanted_plane_inverse_depth(h, w)
     gen = torch.Generator().manual_seed(0)
     picks = torch.randperm(h * w, generator=gen)[:60]
     hint = torch.zeros(1, 1, h, w)
@@ -340,9 +345,7 @@ def test_affine_fill_has_no_steps_where_the_scale_changes():
     # and around them the fill changes scale. A hard scale switch drew steps (rings) into the prior:
     # 0.033 here, against 0.019 with the blended hand-over (the rest is the clipping of the fill).
     h, w = 48, 64
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
-                            indexing="ij")
-    inv = 0.3 + 0.004 * xs + 0.002 * ys
+    inv = _slanted_plane_inverse_depth(h, w)
     gen = torch.Generator().manual_seed(1)
     hint = torch.zeros(1, 1, h, w)
     for cy, cx in ((14, 16), (34, 46)):
