@@ -45,20 +45,24 @@ def upsample_prior(prior: np.ndarray, net_size: tuple[int, int], map_size: tuple
     return np.where(has > 0.999, 1.0 / np.maximum(inv, 1e-12), 0.0).astype(np.float32)
 
 
-def texture_weight(gray: np.ndarray, window: int, threshold: float) -> np.ndarray:
+def texture_weight(image: np.ndarray, window: int, threshold: float) -> np.ndarray:
     """``[H, W]`` in ``[0, 1]``: the grey-level std over ``window x window`` pixels, over ``threshold``.
 
-    ``gray`` ``[H, W]`` in ``[0, 1]``. 1 means textured enough to match; ``threshold <= 0`` gives all ones.
+    ``image`` ``[H, W]`` grey or ``[3, H, W]`` RGB (grey = Rec. 601 luma), in ``[0, 1]``. 1 means
+    textured enough to match; ``threshold <= 0`` gives all ones.
     The clipped ratio is smoothed by a Gaussian of ``sigma = (window - 1) / 2``: unsmoothed, the edges
     of a flat door (textured, weight 1) kept the network's depth as thin lines across the blended door.
     """
     import cv2
 
-    if gray.ndim != 2:
-        raise ShapeError(f"gray must be [H, W], got shape {gray.shape}")
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 3 and image.shape[0] == 3:
+        image = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), image, axes=1)
+    if image.ndim != 2:
+        raise ShapeError(f"image must be [H, W] or [3, H, W], got shape {image.shape}")
     if threshold <= 0:
-        return np.ones(gray.shape, np.float32)
-    g = np.asarray(gray, dtype=np.float32)
+        return np.ones(image.shape, np.float32)
+    g = image
     mean = cv2.blur(g, (window, window), borderType=cv2.BORDER_REFLECT)
     sq = cv2.blur(g * g, (window, window), borderType=cv2.BORDER_REFLECT)
     std = np.sqrt(np.maximum(sq - mean * mean, 0.0))

@@ -770,21 +770,20 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
         logger.error("skipping %s: %s (%s)", name, reason, exc)
         return RefOutcome(name, "photometric", "skipped", reason)
     timings["network"] = time.perf_counter() - t0
+    conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     if guide is not None:  # back to the map size along the image's edges
         t0 = time.perf_counter()
         w, h = size
         depth = guided_upsample_depth(depth, guide)
-        conf = resize_bilinear(np.nan_to_num(conf, nan=0.0), h, w)
+        conf = resize_bilinear(conf, h, w)
         timings["upsample"] = time.perf_counter() - t0
-    conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     if prior is not None and (cfg.prior_blend_texture > 0 or cfg.prior_agreement_scale > 0):
         t0 = time.perf_counter()
         prior = upsample_prior(prior, net_size, size)
         conf = conf * prior_agreement(depth, prior, cfg.prior_agreement_scale)
         if cfg.prior_blend_texture > 0:
             rgb = guide if guide is not None else images[0]
-            gray = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), rgb, axes=1)
-            weight = texture_weight(gray, cfg.prior_blend_window, cfg.prior_blend_texture)
+            weight = texture_weight(rgb, cfg.prior_blend_window, cfg.prior_blend_texture)
             depth = blend_with_prior(depth, prior, weight)
         timings["prior_blend"] = time.perf_counter() - t0
     t0 = time.perf_counter()

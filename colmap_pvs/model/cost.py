@@ -228,11 +228,11 @@ def affine_fill_inverse_depth(
     eye = torch.eye(3, dtype=hint.dtype, device=hint.device)
     moments = [m, m * X, m * Y, m * X * X, m * X * Y, m * Y * Y, m * z, m * X * z, m * Y * z]
     moments = torch.cat(moments, 1)
+    x0, y0 = X[:, 0], Y[:, 0]
     fits, alphas = [], []
     for sigma in sigmas:
         mom = _blurred_sums(moments, sigma)
         S, Sx, Sy, Sxx, Sxy, Syy, Sz, Sxz, Syz = mom.unbind(1)
-        x0, y0 = X[:, 0], Y[:, 0]
         # Moments about the pixel itself: the fit's constant term is then its value there.
         a12, a13 = Sx - x0 * S, Sy - y0 * S
         a22 = Sxx - 2 * x0 * Sx + x0 * x0 * S
