@@ -8,7 +8,7 @@ evaluation), for comparing checkpoints and stereo settings in a few minutes::
     python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag full   # the 60 refs
 
 ``--stereo key=value`` sets any ``StereoConfig`` field. Prints coverage, MAE, AbsRel and the % of
-pixels within 1 / 2 / 5 % for the photometric and (when written) the geometric maps.
+pixels within 1 / 2 / 5 % for the photometric, geometric and filled maps (those written).
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def main() -> int:
         start = time.perf_counter()
         result = run_stereo(config_from_dict(StereoConfig, fields))
         wall = time.perf_counter() - start
-        for kind in ("photometric", "geometric"):
+        for kind in ("photometric", "geometric", "filled"):
             if not any((ws / "stereo" / "depth_maps").glob(f"*.{kind}.bin")):
                 continue
             m = evaluate_depth(

@@ -357,9 +357,10 @@ BASELINES = {
 }
 
 
-def evaluate_against_gt(ws: Path, data: Path, refs: list[str]):
-    """``colmap_pvs.evaluate.evaluate_depth`` of ``ws``'s maps of ``refs`` against the uint16-mm GT of
-    ``data/depth`` (``metrics.json`` written into ``ws``)."""
+def evaluate_against_gt(ws: Path, data: Path, refs: list[str], kind: str = "geometric"):
+    """``colmap_pvs.evaluate.evaluate_depth`` of ``ws``'s ``kind`` maps of ``refs`` against the
+    uint16-mm GT of ``data/depth`` (``metrics.json``, or ``metrics.KIND.json`` for another kind, written
+    into ``ws``)."""
     from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
 
     return evaluate_depth(
@@ -368,22 +369,24 @@ def evaluate_against_gt(ws: Path, data: Path, refs: list[str]):
             gt=data / "depth",
             gt_scale=0.001,
             gt_pattern="{stem}",
+            kind=kind,
             images=tuple(refs),
-            output_path=ws / "metrics.json",
+            output_path=ws / ("metrics.json" if kind == "geometric" else f"metrics.{kind}.json"),
         )
     )
 
 
-def errors_on_mask(ws: Path, mask_ws: Path, gt_dir: Path, refs: list[str]) -> tuple[float, float]:
-    """Pooled AbsRel and % under 5 % of ``ws``'s depth maps over the pixels where ``mask_ws`` (the
-    Delaunay baseline) also has a prediction and the GT is valid; NaN when there are none."""
+def errors_on_mask(ws: Path, mask_ws: Path, gt_dir: Path, refs: list[str],
+                   kind: str = "geometric") -> tuple[float, float]:
+    """Pooled AbsRel and % under 5 % of ``ws``'s ``kind`` depth maps over the pixels where ``mask_ws``
+    (the Delaunay baseline) also has a geometric map and the GT is valid; NaN when there are none."""
     import cv2
 
     from colmap_pvs.io.maps import read_depth_map
 
     errs = []
     for name in refs:
-        pred_path = ws / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+        pred_path = ws / "stereo" / "depth_maps" / f"{name}.{kind}.bin"
         mask_path = mask_ws / "stereo" / "depth_maps" / f"{name}.geometric.bin"
         gt_path = gt_dir / f"{Path(name).stem}.png"
         if not (pred_path.is_file() and mask_path.is_file() and gt_path.is_file()):
@@ -596,11 +599,18 @@ def main(argv: list[str] | None = None) -> int:
             f"[{result['wall_s']:.0f} s wall]",
             flush=True,
         )
+        if checkpoint is not None and any((ws / "stereo" / "depth_maps").glob("*.filled.bin")):
+            filled = evaluate_against_gt(ws, args.data, refs, kind="filled")  # every pixel, completed
+            rows.append({**rows[-1], "setting": f"{label}, filled", "pooled": filled.pooled,
+                         "kind": "filled"})
+            print(f"[{label}, filled] coverage {filled.pooled.coverage_pct:.1f}%, AbsRel "
+                  f"{filled.pooled.absrel:.4f}", flush=True)
         (work / "sources").mkdir(exist_ok=True)
         (work / "sources" / f"{slug}.json").write_text(json.dumps(sources, indent=1))
 
     for r in rows:  # errors on the pixels that the Delaunay baseline covers (its convex hull)
-        r["hull"] = errors_on_mask(r["workspace"], hull_ws, args.data / "depth", refs)
+        kind = r.get("kind", "geometric")
+        r["hull"] = errors_on_mask(r["workspace"], hull_ws, args.data / "depth", refs, kind)
     total = time.perf_counter() - t_start
     table = markdown_table(rows)
     import torch

@@ -111,8 +111,9 @@ class EvaluateDepthConfig:
 
     workspace_path: Path = field(metadata={"help": "COLMAP dense workspace with stereo/depth_maps"})
     gt: Path = field(metadata={"help": "folder of GT depth maps (.npy in scene units, or 16-bit PNG)"})
-    kind: Literal["geometric", "photometric"] = field(
-        default="geometric", metadata={"help": "which predicted depth maps to evaluate"}
+    kind: Literal["geometric", "photometric", "filled"] = field(
+        default="geometric",
+        metadata={"help": "which predicted depth maps to evaluate (filled: the geometric maps, completed)"},
     )
     gt_pattern: str = field(
         default="{stem}",

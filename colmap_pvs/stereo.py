@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .completion import complete_depth, completed_confidence
 from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
 from .consistency import SourceMaps, check_consistency
 from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, WorkspaceError
@@ -77,7 +78,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 4}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 5}
 Stage = Literal["photometric", "geometric"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
@@ -95,6 +96,7 @@ GEOMETRIC_SETTINGS = (
     "geom_num_sources",
     "geom_average_depth",
     "geom_min_confidence",
+    "geom_fill",
 )
 
 
@@ -234,6 +236,14 @@ class StereoConfig:
     geom_min_confidence: float = field(
         default=0.0,
         metadata={"help": "geometric pass: pixels with geometric confidence below this are invalid"},
+    )
+    geom_fill: bool = field(
+        default=True,
+        metadata={
+            "help": "geometric pass: also write a dense completion, NAME.filled.bin in stereo/depth_maps and "
+            "stereo/confidence_maps: the dropped pixels filled by a local plane fit of the kept ones "
+            "(COLMAP's fusion never reads it)"
+        },
     )
 
     def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
@@ -702,13 +712,22 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
-                depth_range, timings, vis=None, sources=()) -> None:
+                depth_range, timings, vis=None, sources=(), filled=None) -> None:
     """Write one pass's maps (the depth last: it marks the pass done), then its previews.
 
-    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``. Preview
-    names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
+    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``.
+    ``filled`` (geometric pass only): ``(depth, confidence)`` ``[H, W]`` of the dense completion, written
+    as ``NAME.filled.bin``; ``None`` removes an earlier run's. Preview names: ``NAME.photometric.*.png``
+    for the first pass, ``NAME.*.png`` for the geometric one (``NAME.filled.depth.png`` its completion).
     """
     t0 = time.perf_counter()
+    if stage == "geometric":
+        for path in (ws.depth_map_path(name, "filled"), ws.confidence_map_path(name, "filled")):
+            if filled is None:
+                path.unlink(missing_ok=True)
+        if filled is not None:
+            write_array(ws.confidence_map_path(name, "filled"), filled[1].astype(np.float32))
+            write_depth_map(ws.depth_map_path(name, "filled"), filled[0])
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
     if vis is not None:
         write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
@@ -724,6 +743,9 @@ def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, se
         save_depth_preview(f"{stem}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
         save_normal_preview(f"{stem}.normal.png", normals)
         save_scalar_preview(f"{stem}.confidence.png", conf)
+        if filled is not None:
+            save_depth_preview(f"{stem}.filled.depth.png", filled[0], vmin=depth_range[0],
+                               vmax=depth_range[1])
         for k, src in enumerate(sources):
             save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
         timings["previews"] = time.perf_counter() - t0
@@ -904,12 +926,25 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
+    filled = None
+    if cfg.geom_fill:
+        t0 = time.perf_counter()
+        kept = depth > 0
+        photo_conf_path = ws.confidence_map_path(name, "photometric")
+        photo_conf = read_array(photo_conf_path) if photo_conf_path.is_file() else np.zeros_like(depth)
+        if photo_conf.shape != depth.shape:
+            raise MapFormatError(
+                f"photometric confidence map {str(photo_conf_path)!r} is {photo_conf.shape}, its depth map "
+                f"is {depth.shape}"
+            )
+        filled = (complete_depth(depth, ref.depth), completed_confidence(kept, conf, photo_conf))
+        timings["fill"] = time.perf_counter() - t0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
              "kept_fraction": float(keep.mean())}
     ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
-                     dr, timings)
+                     dr, timings, None, (), filled)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 

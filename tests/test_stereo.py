@@ -288,8 +288,25 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     np.testing.assert_allclose(geo[ok], photo[ok], rtol=0.03)  # averaged within geom_max_depth_error
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
     assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
+    # The dense completion: the kept pixels as they are, the dropped block filled from around it
+    # (the block spans the box's edge, so a plane fit is not exact there), closer to the truth than
+    # the corrupted photometric depth (10 % off), and ranked below the kept pixels.
+    filled = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.filled.bin")
+    filled_conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.filled.bin")
+    assert np.all(filled > 0)
+    np.testing.assert_array_equal(filled[ok], geo[ok])
+    truth = photo[40:70, 60:100] / 1.1
+    assert np.median(np.abs(filled[40:70, 60:100] / truth - 1)) < 0.07
+    assert filled_conf[ok].min() > filled_conf[~ok].max()
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
     ctx.close()
+    # Switching the completion off recomputes the geometric pass and removes the stale completion.
+    ctx = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True, geom_fill=False))
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    assert not (ws / "stereo" / "depth_maps" / f"{ref}.filled.bin").exists()
+    assert not (ws / "stereo" / "confidence_maps" / f"{ref}.filled.bin").exists()
+    np.testing.assert_array_equal(read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin"), geo)
 
 
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,

@@ -50,7 +50,8 @@ __all__ = [
     "write_patch_match_cfg",
 ]
 
-MAP_KINDS = ("geometric", "photometric")
+#: ``filled``: the geometric pass's dense completion (depth and confidence only; COLMAP never reads it).
+MAP_KINDS = ("geometric", "photometric", "filled")
 
 
 def _check_image_name(name: str) -> str:
