@@ -1,17 +1,23 @@
-"""Dense completion of a geometric map: the pixels it drops, filled by a plane fit of those it keeps.
+"""Dense completion of a geometric map: the third stereo pass, ``NAME.filled.bin``.
 
 The geometric pass keeps the pixels that its sources confirm (on hololens-dev 66 % of them, 75 %
 within 5 % of the ground truth) and drops the rest, mostly untextured walls and cupboards where the
-network's photometric depth is wrong (26 % within 5 % there). Those regions are mostly planes whose
-textured borders *are* kept, so a local plane fit of the kept pixels extends the borders into the
-wall; planar-prior stereo (ACMP, Xu & Tao 2020) builds its prior from its reliable pixels the same
-way. Measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02): the filled pixels are 35 %
-within 5 % (against the photometric depth's 26 %), and the whole map 61.5 % (58.3 % photometric).
+network's photometric depth is wrong (26 % within 5 % there). The completion fills them in two steps,
+measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02):
 
-:func:`complete_depth` returns the dense map, :func:`completed_confidence` a confidence that ranks
-every kept pixel above every filled one. The stereo step writes both as ``NAME.filled.bin`` in
-``stereo/depth_maps`` and ``stereo/confidence_maps`` (``docs/CONVENTIONS.md``); COLMAP's fusion never
-reads them. Arrays are numpy ``[H, W]`` (depth in the map's units, 0 = none).
+1. **The other views' kept pixels** (:func:`splat_depths`). A pixel this view dropped is often kept
+   by a source that saw it better; the sources' geometric maps are projected into the reference
+   (nearest surface per source) and a dropped pixel takes the median where ``min_sources`` of them
+   agree within 3 % of it (the re-estimate from the sources' maps of COLMAP's geometric pass).
+2. **A plane fit of what is known** (:func:`complete_depth`). Those regions are mostly planes whose
+   textured borders are known, so a local plane fit in inverse depth extends the borders into the
+   wall; planar-prior stereo (ACMP, Xu & Tao 2020) builds its prior from its reliable pixels the same
+   way.
+
+Every kept pixel stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the
+pixels the sources gave, then the fitted ones. The stereo step writes the result as ``NAME.filled.bin``
+in ``stereo/depth_maps`` and ``stereo/confidence_maps`` (``docs/CONVENTIONS.md``); COLMAP's fusion
+never reads it. Arrays are numpy ``[H, W]`` (depth in the map's units, 0 = none).
 """
 
 from __future__ import annotations
@@ -19,9 +25,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .consistency import SourceMaps
 from .errors import ShapeError
+from .geometry import backproject_depth
 from .model.cost import affine_fill_inverse_depth
 from .upsampling import resize_bilinear
+
+#: Relative depth tolerance within which splatted source depths agree with their median.
+SPLAT_AGREEMENT = 0.03
 
 #: Scales of the plane fit, in cells of the pooled grid (a cell is ``factor`` pixels).
 FILL_SIGMAS = (2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
@@ -79,19 +90,73 @@ def complete_depth(
     return np.where(kept > 0, kept, fill).astype(np.float32)
 
 
-def completed_confidence(kept: np.ndarray, geometric: np.ndarray, photometric: np.ndarray) -> np.ndarray:
-    """``[H, W]`` confidence of a completed map in ``[0, 1]``: every kept pixel above every filled one.
+def splat_depths(
+    K: np.ndarray, cam_from_world: np.ndarray, size: tuple[int, int], sources: list[SourceMaps],
+    min_sources: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sources' depth maps projected into a reference view, and where enough of them agree.
 
-    ``0.5 + 0.5 * geometric`` where ``kept`` (bool ``[H, W]``), ``0.5 * photometric`` elsewhere (both
-    confidences in ``[0, 1]``). The sources confirmed the kept pixels and nobody confirmed the filled
-    ones, so the kept ones rank first (on hololens-dev the 50 % most confident pixels then have 0.49
-    of the map's AbsRel); within each group the pass's own confidence ranks.
+    Every valid source pixel (centre, our convention) is back-projected with its depth and projected
+    into the reference (``K`` ``[3, 3]``, ``cam_from_world`` ``[4, 4]``, ``size`` ``(W, H)``); it lands
+    in pixel ``floor(u), floor(v)``. Per source the nearest surface wins (a z-buffer). A pixel's
+    value is the median over the sources that reach it, kept where at least ``min_sources`` of them
+    lie within :data:`SPLAT_AGREEMENT` of that median.
+
+    Returns:
+        depth ``[H, W]`` float32 (0 where fewer than ``min_sources`` agree) and the number of
+        agreeing sources ``[H, W]`` int32.
     """
-    if not (kept.shape == geometric.shape == photometric.shape) or kept.ndim != 2:
-        raise ShapeError(
-            f"kept, geometric and photometric must be the same [H, W], got {kept.shape}, "
-            f"{geometric.shape} and {photometric.shape}"
-        )
-    geo = np.clip(np.nan_to_num(geometric), 0.0, 1.0)
-    photo = np.clip(np.nan_to_num(photometric), 0.0, 1.0)
-    return np.where(kept, 0.5 + 0.5 * geo, 0.5 * photo).astype(np.float32)
+    W, H = size
+    if not sources:
+        return np.zeros((H, W), np.float32), np.zeros((H, W), np.int32)
+    stack = np.zeros((len(sources), H, W), np.float32)
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    for k, src in enumerate(sources):
+        valid = src.depth > 0
+        if not valid.any():
+            continue
+        X = backproject_depth(src.depth, src.K)[valid]  # source camera frame
+        world_from_src = np.linalg.inv(src.cam_from_world)
+        Xr = (X @ world_from_src[:3, :3].T + world_from_src[:3, 3]) @ R.T + t
+        z = Xr[:, 2]
+        front = z > 1e-9
+        uvw = Xr[front] @ K.T
+        u = np.floor(uvw[:, 0] / uvw[:, 2])
+        v = np.floor(uvw[:, 1] / uvw[:, 2])
+        inside = (u >= 0) & (v >= 0) & (u < W) & (v < H)
+        index = (v[inside] * W + u[inside]).astype(np.int64)
+        zbuf = np.full(H * W, np.inf)
+        np.minimum.at(zbuf, index, z[front][inside])
+        stack[k] = np.where(np.isfinite(zbuf), zbuf, 0.0).reshape(H, W)
+    reached = stack > 0
+    count = reached.sum(0)
+    ordered = np.sort(np.where(reached, stack, np.inf), axis=0)  # the reached values first
+    lo = np.take_along_axis(ordered, np.maximum(count - 1, 0)[None] // 2, 0)[0]
+    hi = np.take_along_axis(ordered, (count // 2)[None].clip(max=len(sources) - 1), 0)[0]
+    median = np.where(count > 0, 0.5 * (lo + hi), 0.0).astype(np.float32)
+    agree = (reached & (np.abs(stack / np.maximum(median, 1e-12) - 1.0) <= SPLAT_AGREEMENT)).sum(0)
+    agree = agree.astype(np.int32)
+    return np.where(agree >= min_sources, median, 0.0).astype(np.float32), agree
+
+
+def completed_confidence(
+    kept: np.ndarray, splatted: np.ndarray, geometric: np.ndarray, photometric: np.ndarray,
+    splat_support: np.ndarray,
+) -> np.ndarray:
+    """``[H, W]`` confidence of a completed map in ``[0, 1]``: kept, then splatted, then fitted pixels.
+
+    ``0.5 + 0.5 * geometric`` where ``kept``; ``0.25 + 0.25 * splat_support`` where ``splatted`` (the
+    fraction of the sources that agreed, in ``[0, 1]``); ``0.25 * photometric`` elsewhere (all inputs
+    ``[H, W]``, confidences in ``[0, 1]``). The sources confirmed the kept pixels, the splatted ones
+    come from pixels the sources kept, and nobody confirmed the fitted ones; within each group the
+    group's own confidence ranks.
+    """
+    shapes = {a.shape for a in (kept, splatted, geometric, photometric, splat_support)}
+    if len(shapes) != 1 or kept.ndim != 2:
+        raise ShapeError(f"the inputs must all be the same [H, W], got shapes {sorted(shapes)}")
+
+    def unit(a):
+        return np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0)
+
+    conf = np.where(splatted, 0.25 + 0.25 * unit(splat_support), 0.25 * unit(photometric))
+    return np.where(kept, 0.5 + 0.5 * unit(geometric), conf).astype(np.float32)

@@ -8,8 +8,9 @@
    read the workspace, then calls :func:`colmap_pvs.stereo.prepare_stereo` once (sparse model,
    view selection and checkpoint loaded once per actor, never per task);
 3. hands out one task per reference and pass (photometric, then geometric when
-   ``config.geom_consistency`` exists and is true). A geometric task of reference R is handed out only
-   after the photometric tasks of R and of R's sources finished. Each task is
+   ``config.geom_consistency`` exists and is true, then the dense completion when ``config.geom_fill``
+   is true too). A geometric task of reference R is handed out only after the photometric tasks of R
+   and of R's sources finished, a completion task after every geometric task. Each task is
    :func:`colmap_pvs.stereo.process_reference`, which writes the maps atomically straight into the
    shared workspace, exactly as the local backend does: only names and small outcome records travel
    through Ray's object store;
@@ -44,7 +45,7 @@ from .config import replace_config, save_config
 from .errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.workspace import Workspace, write_fusion_cfg
-from .stereo import CONFIG_FILENAME, StereoConfig, StereoResult
+from .stereo import CONFIG_FILENAME, StereoConfig, StereoResult, remove_filled
 from .views import reference_sources
 
 logger = logging.getLogger(__name__)
@@ -62,8 +63,12 @@ Task = tuple[str, str]  # (reference name, pass)
 
 
 def stereo_passes(config: StereoConfig) -> tuple[str, ...]:
-    """The passes of a stereo run, in order: photometric, then geometric if the config asks for it."""
-    return ("photometric", "geometric") if getattr(config, "geom_consistency", False) else ("photometric",)
+    """The passes of a stereo run, in order: photometric, then geometric if the config asks for it,
+    then the geometric maps' dense completion (``filled``) if it asks for that too."""
+    if not getattr(config, "geom_consistency", False):
+        return ("photometric",)
+    return ("photometric", "geometric", "filled") if getattr(config, "geom_fill", False) else (
+        "photometric", "geometric")
 
 
 @dataclass
@@ -89,9 +94,10 @@ class DistributedStereoResult(StereoResult):
 
 
 class TaskGraph:
-    """Tasks ``(image, pass)`` and their order: a later pass of reference R waits for the previous pass
-    of R and of R's sources (``None``: for every image). ``auxiliary`` images (sources that are not
-    references) get the first pass only."""
+    """Tasks ``(image, pass)`` and their order: the second pass of reference R waits for the first pass
+    of R and of R's sources (``None``: for every image); a third pass (the dense completion, which
+    reads the geometric maps of every view its geometric pass checked) waits for the second pass of
+    every reference. ``auxiliary`` images (sources that are not references) get the first pass only."""
 
     def __init__(self, references: list[str], passes: tuple[str, ...], sources: dict[str, list[str] | None],
                  auxiliary: list[str] = ()):
@@ -108,7 +114,7 @@ class TaskGraph:
                 task = (name, stage)
                 pool = first if i == 1 else references  # the images the previous pass ran on
                 srcs = sources.get(name)
-                needed = set(pool) & ({name, *srcs} if srcs is not None else set(pool))
+                needed = set(pool) & ({name, *srcs} if srcs is not None and i == 1 else set(pool))
                 self._waiting[task] = {(s, passes[i - 1]) for s in needed}
                 for dep in self._waiting[task]:
                     self._dependents[dep].append(task)
@@ -447,6 +453,8 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
     if len(passes) > 1 and hasattr(result, "geometric_processed"):  # the two-pass StereoResult
         lists[passes[1]] = (result.geometric_processed, result.geometric_done, result.geometric_skipped)
         result.auxiliary = list(plan["auxiliary"])
+    if len(passes) > 2 and hasattr(result, "filled_processed"):
+        lists[passes[2]] = (result.filled_processed, result.filled_done, result.filled_skipped)
     seconds = [out.seconds for out in outcomes.values() if out.status == "computed"]
     computed = {name for (name, _stage), out in outcomes.items()
                 if out.status == "computed" and name not in aux}
@@ -462,7 +470,7 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
             else:
                 skipped[name] = out.reason
     result.sources = {n: s for n, s in plan["sources"].items() if s is not None and n not in result.skipped}
-    kind = passes[-1]
+    kind = passes[min(1, len(passes) - 1)]  # the maps COLMAP fuses: the completion has no normals
     done = [n for n in refs if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
     if not done:  # as the local backend: an error, and the previous fusion.cfg is kept
         reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
@@ -517,6 +525,9 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
             driver.kill_all()
         # Every worker is gone now: whatever temporary file is left (on any node) is an orphan.
         remove_orphan_temps(ws.stereo_dir, recursive=True, max_age_s=0.0)
+        if "filled" not in passes:  # as locally: never keep a completion that no longer matches
+            for name in refs:
+                remove_filled(ws, name)
         result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}
         result.workers = len(driver.info)

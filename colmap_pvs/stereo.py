@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .completion import complete_depth, completed_confidence
+from .completion import complete_depth, completed_confidence, splat_depths
 from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
 from .consistency import SourceMaps, check_consistency
 from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, WorkspaceError
@@ -78,8 +78,8 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 5}
-Stage = Literal["photometric", "geometric"]
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 4, "filled": 1}
+Stage = Literal["photometric", "geometric", "filled"]
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
@@ -96,8 +96,9 @@ GEOMETRIC_SETTINGS = (
     "geom_num_sources",
     "geom_average_depth",
     "geom_min_confidence",
-    "geom_fill",
 )
+#: Settings that change the dense completion (with the geometric fingerprints it reads).
+FILLED_SETTINGS = ("geom_fill_min_sources",)
 
 
 @dataclass(frozen=True)
@@ -240,16 +241,21 @@ class StereoConfig:
     geom_fill: bool = field(
         default=True,
         metadata={
-            "help": "geometric pass: also write a dense completion, NAME.filled.bin in stereo/depth_maps and "
-            "stereo/confidence_maps: the dropped pixels filled by a local plane fit of the kept ones "
-            "(COLMAP's fusion never reads it)"
+            "help": "third pass, after the geometric one: a dense completion of each geometric map, "
+            "NAME.filled.bin in stereo/depth_maps and stereo/confidence_maps: dropped pixels from the "
+            "sources' kept pixels, then a local plane fit (COLMAP's fusion never reads it)"
         },
+    )
+    geom_fill_min_sources: int = field(
+        default=2,
+        metadata={"help": "dense completion: sources whose kept depths must agree to give a dropped pixel"},
     )
 
     def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
         from .config import check_range
 
         check_range("num_views", self.num_views, low=2)
+        check_range("geom_fill_min_sources", self.geom_fill_min_sources, low=1)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
@@ -292,7 +298,8 @@ class StereoResult:
     """What :func:`run_stereo` did: processed, skipped (with reasons) and timing.
 
     ``processed`` / ``already_done`` are the photometric pass's, ``geometric_processed`` /
-    ``geometric_done`` the geometric pass's; ``timings`` sums seconds per stage over both passes;
+    ``geometric_done`` the geometric pass's, ``filled_processed`` / ``filled_done`` / ``filled_skipped``
+    the dense completion's (``geom_fill``); ``timings`` sums seconds per stage over the passes;
     ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
     per computed reference. ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
     lists a subset) and got photometric maps for the geometric pass.
@@ -307,6 +314,9 @@ class StereoResult:
     geometric_processed: list[str] = field(default_factory=list)
     geometric_done: list[str] = field(default_factory=list)
     geometric_skipped: dict[str, str] = field(default_factory=dict)
+    filled_processed: list[str] = field(default_factory=list)
+    filled_done: list[str] = field(default_factory=list)
+    filled_skipped: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     pass_seconds: dict[str, float] = field(default_factory=dict)
     auxiliary: list[str] = field(default_factory=list)
@@ -712,22 +722,13 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
-                depth_range, timings, vis=None, sources=(), filled=None) -> None:
+                depth_range, timings, vis=None, sources=()) -> None:
     """Write one pass's maps (the depth last: it marks the pass done), then its previews.
 
-    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``.
-    ``filled`` (geometric pass only): ``(depth, confidence)`` ``[H, W]`` of the dense completion, written
-    as ``NAME.filled.bin``; ``None`` removes an earlier run's. Preview names: ``NAME.photometric.*.png``
-    for the first pass, ``NAME.*.png`` for the geometric one (``NAME.filled.depth.png`` its completion).
+    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``. Preview
+    names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
     t0 = time.perf_counter()
-    if stage == "geometric":
-        for path in (ws.depth_map_path(name, "filled"), ws.confidence_map_path(name, "filled")):
-            if filled is None:
-                path.unlink(missing_ok=True)
-        if filled is not None:
-            write_array(ws.confidence_map_path(name, "filled"), filled[1].astype(np.float32))
-            write_depth_map(ws.depth_map_path(name, "filled"), filled[0])
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
     if vis is not None:
         write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
@@ -743,9 +744,6 @@ def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, se
         save_depth_preview(f"{stem}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
         save_normal_preview(f"{stem}.normal.png", normals)
         save_scalar_preview(f"{stem}.confidence.png", conf)
-        if filled is not None:
-            save_depth_preview(f"{stem}.filled.depth.png", filled[0], vmin=depth_range[0],
-                               vmax=depth_range[1])
         for k, src in enumerate(sources):
             save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
         timings["previews"] = time.perf_counter() - t0
@@ -926,26 +924,105 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
-    filled = None
-    if cfg.geom_fill:
-        t0 = time.perf_counter()
-        kept = depth > 0
-        photo_conf_path = ws.confidence_map_path(name, "photometric")
-        photo_conf = read_array(photo_conf_path) if photo_conf_path.is_file() else np.zeros_like(depth)
-        if photo_conf.shape != depth.shape:
-            raise MapFormatError(
-                f"photometric confidence map {str(photo_conf_path)!r} is {photo_conf.shape}, its depth map "
-                f"is {depth.shape}"
-            )
-        filled = (complete_depth(depth, ref.depth), completed_confidence(kept, conf, photo_conf))
-        timings["fill"] = time.perf_counter() - t0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
              "kept_fraction": float(keep.mean())}
     ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
-                     dr, timings, None, (), filled)
+                     dr, timings)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
+
+
+# --------------------------------------------------------------------------- dense completion
+
+
+def _geometric_maps(ctx: StereoContext, name: str) -> SourceMaps:
+    depth = read_depth_map(ctx.workspace.depth_map_path(name, "geometric"))
+    h, w = depth.shape
+    T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
+    return SourceMaps(depth, None, ctx.map_K(name, (w, h)), T)
+
+
+def _read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int]) -> np.ndarray:
+    path = ws.confidence_map_path(name, kind)
+    conf = read_array(path) if path.is_file() else np.zeros(shape, np.float32)
+    if conf.shape != shape:
+        raise MapFormatError(f"confidence map {str(path)!r} is {conf.shape}, its depth map is {shape}")
+    return conf
+
+
+def remove_filled(ws: Workspace, name: str) -> None:
+    """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done)."""
+    for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
+                 ws.confidence_map_path(name, "filled")):
+        path.unlink(missing_ok=True)
+
+
+def _filled(ctx: StereoContext, name: str) -> RefOutcome:
+    """The dense completion of ``name``'s geometric map (:mod:`colmap_pvs.completion`).
+
+    Reads the geometric maps of ``name`` and of the sources its geometric pass checked (those that
+    have geometric maps: other references), so it runs once every geometric map exists.
+    """
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    prov = read_provenance(ws, name, "geometric")
+    if prov is None or not ws.depth_map_path(name, "geometric").is_file():
+        return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
+    entry = ctx.selection.references.get(name)
+    source_prov: dict[str, dict] = {}  # the best views by score that have geometric maps
+    for s in entry.ranked_names if entry is not None else prov.get("sources", []):
+        if len(source_prov) >= max(1, cfg.geom_num_sources):
+            break
+        found = read_provenance(ws, s, "geometric") if s != name else None
+        if found is not None and ws.depth_map_path(s, "geometric").is_file():
+            source_prov[s] = found
+    settings = _settings(ctx, "filled", FILLED_SETTINGS)
+    settings.update(reference=prov["fingerprint"],
+                    sources={s: p["fingerprint"] for s, p in source_prov.items()})
+    size = tuple(prov.get("image_size", ctx.map_size(name)))
+    if not cfg.overwrite and _is_current(ws, name, "filled", _fingerprint(settings), size):
+        return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
+    t0 = time.perf_counter()
+    ref = _geometric_maps(ctx, name)
+    srcs = [_geometric_maps(ctx, s) for s in source_prov]
+    h, w = ref.depth.shape
+    photo = read_depth_map(ws.depth_map_path(name, "photometric"))
+    if photo.shape != (h, w):
+        raise MapFormatError(
+            f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
+        )
+    geo_conf = _read_confidence(ws, name, "geometric", (h, w))
+    photo_conf = _read_confidence(ws, name, "photometric", (h, w))
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    kept = ref.depth > 0
+    splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.geom_fill_min_sources)
+    splatted = ~kept & (splat > 0)
+    timings["splat"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    depth = complete_depth(np.where(kept, ref.depth, splat).astype(np.float32), photo)
+    conf = completed_confidence(kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)))
+    timings["fit"] = time.perf_counter() - t0
+    extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
+             "splatted_fraction": float(splatted.mean())}
+    dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
+    ctx.submit_write(_write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
+    return RefOutcome(name, "filled", "computed", seconds=time.perf_counter() - start, timings=timings)
+
+
+def _write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previews, depth_range,
+                  timings) -> None:
+    """Write the dense completion: confidence, provenance, then the depth (which marks it done)."""
+    t0 = time.perf_counter()
+    write_array(ws.confidence_map_path(name, "filled"), conf.astype(np.float32))
+    _write_provenance(ws, name, "filled", settings, extra)
+    write_depth_map(ws.depth_map_path(name, "filled"), depth)
+    timings["writes"] = time.perf_counter() - t0
+    if previews:
+        save_depth_preview(ws.stereo_dir / "previews" / f"{name}.filled.depth.png", depth,
+                           vmin=depth_range[0], vmax=depth_range[1])
 
 
 def process_reference(ctx: StereoContext, name: str, stage: Stage) -> RefOutcome:
@@ -960,7 +1037,9 @@ def process_reference(ctx: StereoContext, name: str, stage: Stage) -> RefOutcome
         return _photometric(ctx, name)
     if stage == "geometric":
         return _geometric(ctx, name)
-    raise ConfigError(f"stage must be 'photometric' or 'geometric', got {stage!r}")
+    if stage == "filled":
+        return _filled(ctx, name)
+    raise ConfigError(f"stage must be 'photometric', 'geometric' or 'filled', got {stage!r}")
 
 
 def auxiliary_references(ctx: StereoContext) -> list[str]:
@@ -1047,11 +1126,30 @@ def run_stereo(config: StereoConfig) -> StereoResult:
                     result.geometric_processed.append(name)
             ctx.flush()
             result.pass_seconds["geometric"] = time.perf_counter() - t_pass
+        if config.geom_consistency and config.geom_fill:
+            t_pass = time.perf_counter()
+            for name in tqdm(names, desc="stereo (dense completion)", unit="image"):
+                if name in result.skipped or name in result.geometric_skipped:
+                    continue
+                out = process_reference(ctx, name, "filled")
+                outcomes.append(out)
+                if out.status == "done":
+                    result.filled_done.append(name)
+                elif out.status == "skipped":
+                    logger.warning("dense completion: skipping %s: %s", name, out.reason)
+                    result.filled_skipped[name] = out.reason
+                else:
+                    result.filled_processed.append(name)
+            ctx.flush()
+            result.pass_seconds["filled"] = time.perf_counter() - t_pass
+        else:  # never keep a completion that no longer matches the maps
+            for name in names:
+                remove_filled(ws, name)
     finally:
         ctx.close()
     for out in outcomes:
         for stage, sec in out.timings.items():
-            key = stage if out.stage == "photometric" else f"geometric.{stage}"
+            key = stage if out.stage == "photometric" else f"{out.stage}.{stage}"
             result.timings[key] = result.timings.get(key, 0.0) + sec
     kind = _final_kind(config)
     done = [n for n in names
@@ -1063,7 +1161,7 @@ def run_stereo(config: StereoConfig) -> StereoResult:
             f"({reasons})"
         )
     write_fusion_cfg(ws.fusion_cfg, done)
-    computed = len(set(result.processed) | set(result.geometric_processed))
+    computed = len(set(result.processed) | set(result.geometric_processed) | set(result.filled_processed))
     total = time.perf_counter() - wall
     result.pass_seconds["total"] = total
     result.seconds_per_image = total / computed if computed else 0.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from colmap_pvs.completion import complete_depth, completed_confidence
+from colmap_pvs.completion import complete_depth, completed_confidence, splat_depths
 from colmap_pvs.errors import ShapeError
 
 
@@ -57,18 +57,60 @@ def test_complete_depth_refuses_mismatched_shapes():
         complete_depth(np.ones((4, 5), np.float32), np.ones((4, 5), np.float32), factor=0)
 
 
-def test_completed_confidence_ranks_every_kept_pixel_above_every_filled_one():
+def test_completed_confidence_ranks_kept_then_splatted_then_fitted_pixels():
     rng = np.random.default_rng(0)
-    kept = rng.random((30, 40)) < 0.6
+    r = rng.random((30, 40))
+    kept, splatted = r < 0.5, (r >= 0.5) & (r < 0.7)
+    fitted = ~kept & ~splatted
     geometric = np.where(kept, rng.random((30, 40)), 0.0).astype(np.float32)
     photometric = rng.random((30, 40)).astype(np.float32)
-    photometric[0, 0] = np.nan
-    photometric[kept] = 1.0  # a kept pixel's photometric confidence does not matter
-    conf = completed_confidence(kept, geometric, photometric)
+    photometric[fitted.nonzero()[0][0], fitted.nonzero()[1][0]] = np.nan
+    photometric[kept | splatted] = 1.0  # a kept or splatted pixel's photometric confidence does not matter
+    support = rng.random((30, 40)).astype(np.float32)
+    conf = completed_confidence(kept, splatted, geometric, photometric, support)
     assert conf.dtype == np.float32 and np.all((conf >= 0) & (conf <= 1))
-    assert conf[kept].min() >= conf[~kept].max()
-    # Within each group the pass's own confidence orders the pixels.
+    assert conf[kept].min() >= conf[splatted].max() and conf[splatted].min() >= conf[fitted].max()
+    # Within each group the group's own confidence orders the pixels.
     np.testing.assert_allclose(conf[kept], 0.5 + 0.5 * geometric[kept], rtol=1e-6)
-    np.testing.assert_allclose(conf[~kept], 0.5 * np.nan_to_num(photometric[~kept]), rtol=1e-6)
+    np.testing.assert_allclose(conf[splatted], 0.25 + 0.25 * support[splatted], rtol=1e-6)
+    np.testing.assert_allclose(conf[fitted], 0.25 * np.nan_to_num(photometric[fitted]), rtol=1e-6)
     with pytest.raises(ShapeError):
-        completed_confidence(kept, geometric[:, :5], photometric)
+        completed_confidence(kept, splatted, geometric[:, :5], photometric, support)
+
+
+def _camera(x: float) -> np.ndarray:
+    """``[4, 4]`` cam_from_world of a camera at ``(x, 0, 0)`` looking down +z."""
+    T = np.eye(4)
+    T[0, 3] = -x
+    return T
+
+
+def test_splat_depths_reprojects_the_sources_and_needs_agreement():
+    """A fronto-parallel wall at z = 4 seen by three sources shifted sideways: splatted into the
+    reference it is exact where enough sources reach, a disagreeing source is outvoted, and one
+    source is not enough for ``min_sources = 2``."""
+    from colmap_pvs.consistency import SourceMaps
+
+    H, W = 48, 64
+    K = np.array([[50.0, 0, W / 2], [0, 50.0, H / 2], [0, 0, 1]])
+    wall = np.full((H, W), 4.0, np.float32)
+    sources = [SourceMaps(wall, None, K, _camera(x)) for x in (-0.2, 0.2, 0.4)]
+    depth, agree = splat_depths(K, _camera(0.0), (W, H), sources, min_sources=2)
+    assert depth.shape == (H, W) and depth.dtype == np.float32 and agree.dtype == np.int32
+    inner = depth[:, 10:-10]
+    np.testing.assert_allclose(inner[inner > 0], 4.0, rtol=1e-6)
+    assert (inner > 0).mean() > 0.9 and agree[:, 10:-10].max() == 3
+    # One source sees a nearer surface: the two that agree win.
+    near = np.full((H, W), 2.0, np.float32)
+    wrong = [SourceMaps(wall, None, K, _camera(-0.2)), SourceMaps(wall, None, K, _camera(0.2)),
+             SourceMaps(near, None, K, _camera(0.4))]
+    depth, agree = splat_depths(K, _camera(0.0), (W, H), wrong, min_sources=2)
+    centre = depth[:, 24:40]
+    np.testing.assert_allclose(centre[centre > 0], 4.0, rtol=1e-6)  # the 2 agreeing sources win
+    # Only one source: nothing at min_sources 2, the wall at min_sources 1.
+    depth, _ = splat_depths(K, _camera(0.0), (W, H), sources[:1], min_sources=2)
+    assert not depth.any()
+    depth, _ = splat_depths(K, _camera(0.0), (W, H), sources[:1], min_sources=1)
+    assert (depth[:, 20:] > 0).mean() > 0.9
+    empty, count = splat_depths(K, _camera(0.0), (W, H), [], min_sources=1)
+    assert not empty.any() and not count.any()

@@ -56,7 +56,27 @@ def test_task_graph_orders_passes_by_sources():
     graph.requeue(("c", "geometric"))  # lost with its worker: first in line again
     assert graph.pop() == ("c", "geometric")
     assert stereo_passes(types.SimpleNamespace(geom_consistency=True)) == ("photometric", "geometric")
-    assert stereo_passes(types.SimpleNamespace(geom_consistency=False)) == ("photometric",)
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=False, geom_fill=True)) == ("photometric",)
+    assert stereo_passes(types.SimpleNamespace(geom_consistency=True, geom_fill=True)) == (
+        "photometric", "geometric", "filled")
+
+
+def test_task_graph_dense_completion_waits_for_every_geometric_map():
+    """The completion of a reads the geometric maps of every view its geometric pass checked (not only
+    its network sources), so it waits for the geometric pass of every reference."""
+    graph = TaskGraph(["a", "b", "c"], ("photometric", "geometric", "filled"), {"a": ["b"], "b": ["a"],
+                                                                                "c": ["b"]})
+    assert graph.remaining == 9
+    for _ in range(3):
+        graph.pop()
+    for n in "abc":
+        graph.finish((n, "photometric"))
+    assert sorted(graph.pop() for _ in range(3)) == [(n, "geometric") for n in "abc"]
+    graph.finish(("a", "geometric"))
+    graph.finish(("b", "geometric"))
+    assert graph.pop() is None  # a's completion waits for c's geometric maps too
+    graph.finish(("c", "geometric"))
+    assert sorted(graph.pop() for _ in range(3)) == [(n, "filled") for n in "abc"]
 
 
 def test_task_graph_auxiliary_images_get_the_first_pass_only():

@@ -228,11 +228,16 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     names = sorted(first.processed)
     assert sorted(first.geometric_processed) == names and len(names) == 4
     assert set(first.timings) >= {"load", "prior", "network", "normals", "writes", "geometric.consistency"}
-    assert set(first.pass_seconds) == {"photometric", "geometric", "total"}
-    # A geometric setting: only the geometric pass is recomputed.
+    assert set(first.pass_seconds) == {"photometric", "geometric", "filled", "total"}
+    assert sorted(first.filled_processed) == names and "filled.splat" in first.timings
+    # A setting of the dense completion: only that pass is recomputed.
+    res = run_stereo(dataclasses.replace(cfg, geom_fill_min_sources=1))
+    assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
+    # A geometric setting: the geometric pass and the completion that reads it.
     res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
     assert res.processed == [] and sorted(res.already_done) == names
-    assert sorted(res.geometric_processed) == names
+    assert sorted(res.geometric_processed) == names and sorted(res.filled_processed) == names
+    assert run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05)).filled_processed == []
     # A photometric setting: both passes.
     res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05, min_confidence=0.01))
     assert sorted(res.processed) == names and sorted(res.geometric_processed) == names
@@ -288,25 +293,40 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     np.testing.assert_allclose(geo[ok], photo[ok], rtol=0.03)  # averaged within geom_max_depth_error
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
     assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
-    # The dense completion: the kept pixels as they are, the dropped block filled from around it
-    # (the block spans the box's edge, so a plane fit is not exact there), closer to the truth than
-    # the corrupted photometric depth (10 % off), and ranked below the kept pixels.
-    filled = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.filled.bin")
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    # The dense completion, from the reference's own kept pixels only (no other geometric map yet):
+    # the kept pixels as they are, the dropped block filled by the plane fit from around it (the
+    # block spans the box's edge, so the fit is not exact there), closer to the truth than the
+    # corrupted photometric depth (10 % off), and ranked below the kept pixels.
+    maps = ws / "stereo" / "depth_maps"
+    assert stereo_module.process_reference(ctx, ref, "filled").status == "computed"
+    ctx.flush()
+    filled = read_depth_map(maps / f"{ref}.filled.bin")
     filled_conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.filled.bin")
     assert np.all(filled > 0)
     np.testing.assert_array_equal(filled[ok], geo[ok])
     truth = photo[40:70, 60:100] / 1.1
-    assert np.median(np.abs(filled[40:70, 60:100] / truth - 1)) < 0.07
+    fitted_error = np.median(np.abs(filled[40:70, 60:100] / truth - 1))
+    assert fitted_error < 0.07
     assert filled_conf[ok].min() > filled_conf[~ok].max()
-    assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    # With the other views' geometric maps, the block takes their kept depths (exact maps).
+    for name in analytic_scene["names"][1:]:
+        assert stereo_module.process_reference(ctx, name, "geometric").status == "computed"
+    ctx.flush()
+    assert stereo_module.process_reference(ctx, ref, "filled").status == "computed"  # sources changed
+    ctx.flush()
+    filled = read_depth_map(maps / f"{ref}.filled.bin")
+    splat_error = np.median(np.abs(filled[40:70, 60:100] / truth - 1))
+    assert splat_error < 0.005 and splat_error < fitted_error / 5
+    np.testing.assert_array_equal(filled[ok], geo[ok])
+    assert stereo_module.process_reference(ctx, ref, "filled").status == "done"
     ctx.close()
-    # Switching the completion off recomputes the geometric pass and removes the stale completion.
-    ctx = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True, geom_fill=False))
-    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
-    ctx.close()
-    assert not (ws / "stereo" / "depth_maps" / f"{ref}.filled.bin").exists()
-    assert not (ws / "stereo" / "confidence_maps" / f"{ref}.filled.bin").exists()
-    np.testing.assert_array_equal(read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin"), geo)
+    # Switching the completion off removes it; the geometric maps stay as they are.
+    res = run_stereo(dataclasses.replace(cfg, geom_consistency=True, geom_fill=False))
+    assert res.geometric_processed == [] and res.filled_processed == []
+    assert not list(maps.glob("*.filled.bin"))
+    assert not list((ws / "stereo" / "confidence_maps").glob("*.filled.bin"))
+    np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), geo)
 
 
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,
