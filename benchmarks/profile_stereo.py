@@ -1,4 +1,4 @@
-"""Per-stage profile of one ``colmap-pvs stereo`` run (both passes) on ``hololens-dev``.
+"""Per-stage profile of one ``colmap-pvs stereo`` run (every pass) on ``hololens-dev``.
 
     python benchmarks/profile_stereo.py --count 10 --max_image_size 540 --num_views 5 --threads 2
 
@@ -8,7 +8,8 @@ reference's sources are automatic, so their photometric maps are computed too: t
 needs them), runs :func:`colmap_pvs.stereo.run_stereo` once in this process and prints: seconds per
 image of each pass (wall time of the pass / maps it wrote), the per-stage sums of
 ``StereoResult.timings`` (load, prior, network, confidence, normals, writes, previews, and the
-geometric pass's load, consistency, confidence, normals, writes) and the peak RSS. ``--record``
+geometric pass's load, consistency, confidence, normals, writes; the dense completion's load, splat,
+fit, writes) and the peak RSS. ``--record``
 appends the table to ``benchmarks/RESULTS.md``. Timings on a shared machine are upper bounds.
 """
 
@@ -76,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     n_photo = len(res.processed) + len(res.auxiliary)
     n_geo = len(res.geometric_processed)
+    n_fill = len(res.filled_processed)
     lines = [
         f"{len(refs)} references + {len(res.auxiliary)} auxiliary sources, {args.max_image_size} px, "
         f"N={args.num_views}, {args.threads} threads; wall {wall:.1f} s, peak RSS {rss:.0f} MB",
@@ -83,21 +85,22 @@ def main(argv: list[str] | None = None) -> int:
         "| pass / stage | total s | s per map |",
         "|---|---|---|",
     ]
-    per = {"photometric": max(n_photo, 1), "geometric": max(n_geo, 1)}
+    per = {"photometric": max(n_photo, 1), "geometric": max(n_geo, 1), "filled": max(n_fill, 1)}
     lines.append(f"| prepare (workspace, model, view selection) | {res.timings.get('prepare', 0):.2f} | |")
-    for pass_name in ("photometric", "geometric"):
+    for pass_name in ("photometric", "geometric", "filled"):
         if pass_name not in res.pass_seconds:
             continue
         sec = res.pass_seconds[pass_name]
         lines.append(f"| **{pass_name} pass** ({per[pass_name]} maps) | {sec:.1f} | "
                      f"**{sec / per[pass_name]:.2f}** |")
         for key, value in res.timings.items():
-            stage_pass = "geometric" if key.startswith("geometric.") else "photometric"
+            stage_pass = key.split(".")[0] if key.startswith(("geometric.", "filled.")) else "photometric"
             if key == "prepare" or stage_pass != pass_name:
                 continue
             lines.append(f"| &nbsp; {key} | {value:.2f} | {value / per[pass_name]:.3f} |")
     if n_photo and n_geo:
         total = res.pass_seconds["photometric"] / n_photo + res.pass_seconds["geometric"] / n_geo
+        total += res.pass_seconds["filled"] / n_fill if n_fill else 0.0
         lines.append(f"| **every default pass, per image** (sum of per-map times) | | **{total:.2f}** |")
     table = "\n".join(lines)
     print(table)

@@ -27,7 +27,6 @@ import torch
 
 from .consistency import SourceMaps
 from .errors import ShapeError
-from .geometry import backproject_depth
 from .model.cost import affine_fill_inverse_depth
 from .upsampling import resize_bilinear
 
@@ -110,19 +109,21 @@ def splat_depths(
     if not sources:
         return np.zeros((H, W), np.float32), np.zeros((H, W), np.int32)
     stack = np.zeros((len(sources), H, W), np.float32)
-    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
     for k, src in enumerate(sources):
-        valid = src.depth > 0
-        if not valid.any():
+        rows, cols = np.nonzero(src.depth > 0)
+        if not rows.size:
             continue
-        X = backproject_depth(src.depth, src.K)[valid]  # source camera frame
-        world_from_src = np.linalg.inv(src.cam_from_world)
-        Xr = (X @ world_from_src[:3, :3].T + world_from_src[:3, 3]) @ R.T + t
-        z = Xr[:, 2]
+        d = src.depth[rows, cols].astype(np.float64)
+        # Source pixel centre (our convention) with depth d, into the reference: x ~ A [u d, v d, d] + b.
+        ref_from_src = cam_from_world @ np.linalg.inv(src.cam_from_world)
+        A = K @ ref_from_src[:3, :3] @ np.linalg.inv(src.K)
+        b = K @ ref_from_src[:3, 3]
+        pts = np.stack([(cols + 0.5) * d, (rows + 0.5) * d, d])
+        x = A @ pts + b[:, None]
+        z = x[2]
         front = z > 1e-9
-        uvw = Xr[front] @ K.T
-        u = np.floor(uvw[:, 0] / uvw[:, 2])
-        v = np.floor(uvw[:, 1] / uvw[:, 2])
+        u = np.floor(x[0, front] / z[front])
+        v = np.floor(x[1, front] / z[front])
         inside = (u >= 0) & (v >= 0) & (u < W) & (v < H)
         index = (v[inside] * W + u[inside]).astype(np.int64)
         zbuf = np.full(H * W, np.inf)

@@ -961,8 +961,8 @@ def remove_filled(ws: Workspace, name: str) -> None:
 def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     """The dense completion of ``name``'s geometric map (:mod:`colmap_pvs.completion`).
 
-    Reads the geometric maps of ``name`` and of the sources its geometric pass checked (those that
-    have geometric maps: other references), so it runs once every geometric map exists.
+    Reads the geometric maps of ``name`` and of its best views by score that have geometric maps
+    (other references, up to ``geom_num_sources``), so it runs once every geometric map exists.
     """
     cfg, ws = ctx.config, ctx.workspace
     start = time.perf_counter()
