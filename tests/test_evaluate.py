@@ -200,6 +200,25 @@ def test_evaluate_depth_per_image_and_pooled(depth_case):
     assert m.pooled.abs_under_pct[0.01] == pytest.approx(100 * 11 / 23)
 
 
+def test_evaluate_depth_reads_the_kind_it_is_asked_for(depth_case):
+    """``kind="filled"`` (the dense completion) reads ``NAME.filled.bin`` and its confidence map."""
+    from colmap_pvs.io.maps import write_array, write_depth_map
+
+    ws, gt_dir = depth_case
+    with pytest.raises(WorkspaceError, match="filled"):
+        evaluate_depth(EvaluateDepthConfig(ws, gt_dir, gt_scale=0.001, kind="filled"))
+    exact = np.linspace(1.0, 3.0, 48).reshape(6, 8)[1::2, 1::2].astype(np.float32)
+    for name, depth in (("a.jpg", np.full((3, 4), 2.2, np.float32)), ("b.jpg", exact)):
+        write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.filled.bin", depth)
+        write_array(ws / "stereo" / "confidence_maps" / f"{name}.filled.bin",
+                    np.full((3, 4), 0.1 if name == "a.jpg" else 0.9, np.float32))
+    m = evaluate_depth(EvaluateDepthConfig(ws, gt_dir, gt_scale=0.001, kind="filled"))
+    assert m.per_image["a.jpg"].mae == pytest.approx(0.2, abs=1e-5)  # not the geometric map's 0.02
+    assert m.per_image["b.jpg"].coverage_pct == pytest.approx(100.0)  # the geometric map has a hole
+    # The confident half is b's exact pixels: the sparsification curve reads the filled confidence.
+    assert m.sparsification["error"][m.sparsification["fractions"].index(0.5)] == pytest.approx(0.0, abs=1e-3)
+
+
 def test_listed_images_without_prediction_count_as_zero_coverage(depth_case):
     ws, gt_dir = depth_case
     cv2.imwrite(str(gt_dir / "c.png"), np.full((6, 8), 1000, np.uint16))
