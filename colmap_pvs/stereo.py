@@ -1056,6 +1056,33 @@ def auxiliary_references(ctx: StereoContext) -> list[str]:
     return sorted(extra)
 
 
+_PASS_LABELS = {"geometric": ("stereo (geometric)", "geometric pass"),
+                "filled": ("stereo (dense completion)", "dense completion")}
+
+
+def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: StereoResult,
+                    outcomes: list[RefOutcome], skip: set[str]) -> None:
+    """Run the geometric or the completion pass over ``names`` (but ``skip``), filling
+    ``result.{stage}_processed / _done / _skipped`` and ``result.pass_seconds[stage]``."""
+    t_pass = time.perf_counter()
+    desc, label = _PASS_LABELS[stage]
+    processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
+    for name in tqdm(names, desc=desc, unit="image"):
+        if name in skip:
+            continue
+        out = process_reference(ctx, name, stage)
+        outcomes.append(out)
+        if out.status == "done":
+            done.append(name)
+        elif out.status == "skipped":
+            logger.warning("%s: skipping %s: %s", label, name, out.reason)
+            skipped[name] = out.reason
+        else:
+            processed.append(name)
+    ctx.flush()
+    result.pass_seconds[stage] = time.perf_counter() - t_pass
+
+
 def _final_kind(config: StereoConfig) -> Stage:
     return "geometric" if config.geom_consistency else "photometric"
 
@@ -1111,37 +1138,10 @@ def run_stereo(config: StereoConfig) -> StereoResult:
         ctx.flush()
         result.pass_seconds["photometric"] = time.perf_counter() - t_pass
         if config.geom_consistency:
-            t_pass = time.perf_counter()
-            for name in tqdm(names, desc="stereo (geometric)", unit="image"):
-                if name in result.skipped:
-                    continue
-                out = process_reference(ctx, name, "geometric")
-                outcomes.append(out)
-                if out.status == "done":
-                    result.geometric_done.append(name)
-                elif out.status == "skipped":
-                    logger.warning("geometric pass: skipping %s: %s", name, out.reason)
-                    result.geometric_skipped[name] = out.reason
-                else:
-                    result.geometric_processed.append(name)
-            ctx.flush()
-            result.pass_seconds["geometric"] = time.perf_counter() - t_pass
+            _run_later_pass(ctx, names, "geometric", result, outcomes, set(result.skipped))
         if config.geom_consistency and config.geom_fill:
-            t_pass = time.perf_counter()
-            for name in tqdm(names, desc="stereo (dense completion)", unit="image"):
-                if name in result.skipped or name in result.geometric_skipped:
-                    continue
-                out = process_reference(ctx, name, "filled")
-                outcomes.append(out)
-                if out.status == "done":
-                    result.filled_done.append(name)
-                elif out.status == "skipped":
-                    logger.warning("dense completion: skipping %s: %s", name, out.reason)
-                    result.filled_skipped[name] = out.reason
-                else:
-                    result.filled_processed.append(name)
-            ctx.flush()
-            result.pass_seconds["filled"] = time.perf_counter() - t_pass
+            _run_later_pass(ctx, names, "filled", result, outcomes,
+                            set(result.skipped) | set(result.geometric_skipped))
         else:  # never keep a completion that no longer matches the maps
             for name in names:
                 remove_filled(ws, name)
