@@ -77,6 +77,7 @@ def complete_depth(
     if factor < 1:
         raise ValueError(f"factor must be >= 1, got {factor}")
     H, W = kept.shape
+    kept = np.where(np.isfinite(kept) & (kept > 0), kept, 0.0)  # NaN / inf count as dropped
     hint = _pooled_inverse_depth(kept, factor)
     if not (hint > 0).any():
         return np.where(kept > 0, kept, fallback).astype(np.float32)

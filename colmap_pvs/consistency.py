@@ -26,7 +26,8 @@ from .geometry import pixel_centers
 
 @dataclass
 class SourceMaps:
-    """One source view's photometric maps for the check.
+    """One source view's maps: its photometric maps for the check, its geometric depth for the
+    dense completion (:func:`colmap_pvs.completion.splat_depths`, without normals).
 
     Attributes:
         depth: ``[h, w]`` (0 = invalid); normals: ``[h, w, 3]`` camera frame (or ``None``).

@@ -45,7 +45,7 @@ from .config import replace_config, save_config
 from .errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.workspace import Workspace, write_fusion_cfg
-from .stereo import CONFIG_FILENAME, StereoConfig, StereoResult, remove_filled
+from .stereo import CONFIG_FILENAME, RefOutcome, StereoConfig, StereoResult, remove_filled
 from .views import reference_sources
 
 logger = logging.getLogger(__name__)
@@ -96,8 +96,9 @@ class DistributedStereoResult(StereoResult):
 class TaskGraph:
     """Tasks ``(image, pass)`` and their order: the second pass of reference R waits for the first pass
     of R and of R's sources (``None``: for every image); a third pass (the dense completion, which
-    reads the geometric maps of every view its geometric pass checked) waits for the second pass of
-    every reference. ``auxiliary`` images (sources that are not references) get the first pass only."""
+    reads the geometric maps of R's best views by score among the references) waits for the second
+    pass of every reference. ``auxiliary`` images (sources that are not references) get the first pass
+    only."""
 
     def __init__(self, references: list[str], passes: tuple[str, ...], sources: dict[str, list[str] | None],
                  auxiliary: list[str] = ()):
@@ -395,7 +396,8 @@ class _Driver:
                     break
                 i = self.passes.index(task[1])
                 prev = outcomes.get((task[0], self.passes[i - 1])) if i else None
-                if prev is not None and prev.status == "skipped":
+                if prev is not None and prev.status == "skipped":  # recorded, so later passes skip too
+                    outcomes[task] = RefOutcome(task[0], task[1], "skipped", prev.reason)
                     graph.finish(task)
                     bar.update(1)
                     continue
@@ -525,8 +527,9 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
             driver.kill_all()
         # Every worker is gone now: whatever temporary file is left (on any node) is an orphan.
         remove_orphan_temps(ws.stereo_dir, recursive=True, max_age_s=0.0)
-        if "filled" not in passes:  # as locally: never keep a completion that no longer matches
-            for name in refs:
+        for name in refs:  # as locally: never keep a completion that no longer matches
+            out = outcomes.get((name, "filled"))
+            if "filled" not in passes or out is None or out.status == "skipped":
                 remove_filled(ws, name)
         result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}

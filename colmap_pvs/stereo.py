@@ -958,25 +958,50 @@ def remove_filled(ws: Workspace, name: str) -> None:
         path.unlink(missing_ok=True)
 
 
+def _current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
+    """``name``'s geometric provenance if its geometric maps exist and match this run: it is one of
+    the run's references, its geometric settings are the run's, and they were made from its current
+    photometric maps (whose fingerprint matches this run's settings and sources). ``None`` otherwise:
+    maps left by another run, or by a pass this run skipped."""
+    ws = ctx.workspace
+    if name not in ctx.references or name not in ctx.selection.references:
+        return None
+    prov = read_provenance(ws, name, "geometric")
+    photo = read_provenance(ws, name, "photometric")
+    if prov is None or photo is None or not ws.depth_map_path(name, "geometric").is_file():
+        return None
+    settings = prov.get("settings", {})
+    wanted = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
+    if any(settings.get(k) != v for k, v in wanted.items()) or settings.get("reference") != photo.get(
+            "fingerprint"):
+        return None
+    sources, _ = ctx.sources_of(name)
+    if sources is None or photo.get("fingerprint") != _fingerprint(photometric_settings(ctx, name, sources)):
+        return None
+    return prov
+
+
 def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     """The dense completion of ``name``'s geometric map (:mod:`colmap_pvs.completion`).
 
-    Reads the geometric maps of ``name`` and of its best views by score that have geometric maps
-    (other references, up to ``geom_num_sources``), so it runs once every geometric map exists.
+    Reads the geometric maps of ``name`` and of its best views by score whose geometric maps are
+    current (:func:`_current_geometric_provenance`, up to ``geom_num_sources``), so it runs once every
+    geometric map exists.
     """
     cfg, ws = ctx.config, ctx.workspace
     start = time.perf_counter()
     timings: dict[str, float] = {}
     prov = read_provenance(ws, name, "geometric")
     if prov is None or not ws.depth_map_path(name, "geometric").is_file():
+        remove_filled(ws, name)
         return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
     entry = ctx.selection.references.get(name)
-    source_prov: dict[str, dict] = {}  # the best views by score that have geometric maps
+    source_prov: dict[str, dict] = {}  # the best views by score whose geometric maps are current
     for s in entry.ranked_names if entry is not None else prov.get("sources", []):
         if len(source_prov) >= max(1, cfg.geom_num_sources):
             break
-        found = read_provenance(ws, s, "geometric") if s != name else None
-        if found is not None and ws.depth_map_path(s, "geometric").is_file():
+        found = _current_geometric_provenance(ctx, s) if s != name else None
+        if found is not None:
             source_prov[s] = found
     settings = _settings(ctx, "filled", FILLED_SETTINGS)
     settings.update(reference=prov["fingerprint"],
@@ -1016,6 +1041,9 @@ def _write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previe
                   timings) -> None:
     """Write the dense completion: confidence, provenance, then the depth (which marks it done)."""
     t0 = time.perf_counter()
+    # The old depth goes first: new provenance beside an old depth would look done after a crash
+    # (no other pass reads the completion, so nothing can miss it meanwhile).
+    ws.depth_map_path(name, "filled").unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, "filled"), conf.astype(np.float32))
     _write_provenance(ws, name, "filled", settings, extra)
     write_depth_map(ws.depth_map_path(name, "filled"), depth)
@@ -1069,6 +1097,8 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
     processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
     for name in tqdm(names, desc=desc, unit="image"):
         if name in skip:
+            if stage == "filled":  # never keep a completion of maps this run did not make
+                remove_filled(ctx.workspace, name)
             continue
         out = process_reference(ctx, name, stage)
         outcomes.append(out)

@@ -44,6 +44,15 @@ def test_complete_depth_does_not_fill_across_the_whole_image_with_one_side():
     np.testing.assert_allclose(out[20:44, 66:86], 4.0, rtol=0.01)
 
 
+def test_complete_depth_treats_non_finite_kept_pixels_as_dropped():
+    truth = _slanted_plane_depth(40, 52)
+    kept = truth.copy()
+    kept[10, 10], kept[20, 30] = np.inf, np.nan
+    out = complete_depth(kept, np.ones_like(truth))
+    assert np.all(np.isfinite(out))
+    np.testing.assert_allclose(out[[10, 20], [10, 30]], truth[[10, 20], [10, 30]], rtol=0.01)
+
+
 def test_complete_depth_without_kept_pixels_returns_the_fallback():
     fallback = _slanted_plane_depth(40, 50)
     out = complete_depth(np.zeros_like(fallback), fallback)
@@ -114,3 +123,32 @@ def test_splat_depths_reprojects_the_sources_and_needs_agreement():
     assert (depth[:, 20:] > 0).mean() > 0.9
     empty, count = splat_depths(K, _camera(0.0), (W, H), [], min_sources=1)
     assert not empty.any() and not count.any()
+
+
+def _plane_depth(K: np.ndarray, centre_x: float, size: tuple[int, int]) -> np.ndarray:
+    """``[H, W]`` depth, at pixel centres, of the slanted plane ``z = 4 + 0.5 x`` (world) seen by a
+    camera at ``(centre_x, 0, 0)`` looking down +z (see :func:`_camera`)."""
+    W, H = size
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # z component 1
+    return ((4.0 + 0.5 * centre_x) / (rays[..., 2] - 0.5 * rays[..., 0])).astype(np.float32)
+
+
+def test_splat_depths_on_a_slanted_plane_with_a_half_size_source():
+    """Pixel centres and each source's own intrinsics: a source map at half the reference's size,
+    splatted, gives the reference's exact depth (to well under the depth change of half a pixel)."""
+    from colmap_pvs.consistency import SourceMaps
+
+    W, H = 96, 64
+    K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
+    K_half = np.diag([0.5, 0.5, 1.0]) @ K
+    truth = _plane_depth(K, 0.0, (W, H))
+    sources = [SourceMaps(_plane_depth(K_half, x, (W // 2, H // 2)), None, K_half, _camera(x))
+               for x in (-0.1, 0.1)]
+    sources.append(SourceMaps(_plane_depth(K, 0.2, (W, H)), None, K, _camera(0.2)))
+    depth, agree = splat_depths(K, _camera(0.0), (W, H), sources, min_sources=1)
+    ok = depth > 0
+    assert ok[:, 10:-10].mean() > 0.9
+    half_pixel = np.abs(np.diff(truth, axis=1)).max() / 2
+    err = np.abs(depth[ok] - truth[ok])
+    assert np.median(err) < 0.25 * half_pixel

@@ -62,7 +62,7 @@ def test_task_graph_orders_passes_by_sources():
 
 
 def test_task_graph_dense_completion_waits_for_every_geometric_map():
-    """The completion of a reads the geometric maps of every view its geometric pass checked (not only
+    """The completion of a reads the geometric maps of a's best views among all references (not only
     its network sources), so it waits for the geometric pass of every reference."""
     graph = TaskGraph(["a", "b", "c"], ("photometric", "geometric", "filled"), {"a": ["b"], "b": ["a"],
                                                                                 "c": ["b"]})

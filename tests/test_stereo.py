@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -320,6 +321,15 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     assert splat_error < 0.005 and splat_error < fitted_error / 5
     np.testing.assert_array_equal(filled[ok], geo[ok])
     assert stereo_module.process_reference(ctx, ref, "filled").status == "done"
+    # A source's geometric maps from other settings (another run) are not read.
+    other = analytic_scene["names"][1]
+    assert stereo_module._current_geometric_provenance(ctx, other) is not None
+    prov_path = ws / "stereo" / "provenance" / f"{other}.geometric.json"
+    prov = json.loads(prov_path.read_text())
+    prov["settings"]["geom_max_depth_error"] = 0.5
+    prov_path.write_text(json.dumps(prov))
+    assert stereo_module._current_geometric_provenance(ctx, other) is None
+    assert stereo_module.process_reference(ctx, ref, "filled").status == "computed"  # its sources changed
     ctx.close()
     # Switching the completion off removes it; the geometric maps stay as they are.
     res = run_stereo(dataclasses.replace(cfg, geom_consistency=True, geom_fill=False))
