@@ -837,17 +837,19 @@ def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None) -> np
     return np.clip(weighted.sum(0) / S, 0.0, 1.0).astype(np.float32)
 
 
-def _load_photometric(ctx: StereoContext, name: str):
+def _load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
+               normals: bool = True) -> SourceMaps:
+    """``name``'s ``kind`` depth map (and normal map, with ``normals``), intrinsics and pose."""
     ws = ctx.workspace
-    depth = read_depth_map(ws.depth_map_path(name, "photometric"))
-    normals = read_normal_map(ws.normal_map_path(name, "photometric"))
-    if normals.shape[:2] != depth.shape:
+    depth = read_depth_map(ws.depth_map_path(name, kind))
+    normal_map = read_normal_map(ws.normal_map_path(name, kind)) if normals else None
+    if normal_map is not None and normal_map.shape[:2] != depth.shape:
         raise MapFormatError(
-            f"normal map of {name!r} is {normals.shape[:2]} but its depth map is {depth.shape}"
+            f"normal map of {name!r} is {normal_map.shape[:2]} but its depth map is {depth.shape}"
         )
     h, w = depth.shape
     T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
-    return SourceMaps(depth, normals, ctx.map_K(name, (w, h)), T)
+    return SourceMaps(depth, normal_map, ctx.map_K(name, (w, h)), T)
 
 
 def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
@@ -887,8 +889,8 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "geometric", "skipped",
                           f"{len(sources)} of its sources have photometric maps (missing: {missing})")
     t0 = time.perf_counter()
-    ref = _load_photometric(ctx, name)
-    srcs = [_load_photometric(ctx, s) for s in sources]
+    ref = _load_maps(ctx, name)
+    srcs = [_load_maps(ctx, s) for s in sources]
     h, w = ref.depth.shape
     all_sources = list(prov.get("sources", []))
     vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
@@ -934,13 +936,6 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
 
 
 # --------------------------------------------------------------------------- dense completion
-
-
-def _geometric_maps(ctx: StereoContext, name: str) -> SourceMaps:
-    depth = read_depth_map(ctx.workspace.depth_map_path(name, "geometric"))
-    h, w = depth.shape
-    T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
-    return SourceMaps(depth, None, ctx.map_K(name, (w, h)), T)
 
 
 def _read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int]) -> np.ndarray:
@@ -997,7 +992,7 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
     entry = ctx.selection.references.get(name)
     source_prov: dict[str, dict] = {}  # the best views by score whose geometric maps are current
-    for s in entry.ranked_names if entry is not None else prov.get("sources", []):
+    for s in entry.ranked_names if entry is not None else ():
         if len(source_prov) >= max(1, cfg.geom_num_sources):
             break
         found = _current_geometric_provenance(ctx, s) if s != name else None
@@ -1010,8 +1005,8 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     if not cfg.overwrite and _is_current(ws, name, "filled", _fingerprint(settings), size):
         return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
-    ref = _geometric_maps(ctx, name)
-    srcs = [_geometric_maps(ctx, s) for s in source_prov]
+    ref = _load_maps(ctx, name, "geometric", normals=False)
+    srcs = [_load_maps(ctx, s, "geometric", normals=False) for s in source_prov]
     h, w = ref.depth.shape
     photo = read_depth_map(ws.depth_map_path(name, "photometric"))
     if photo.shape != (h, w):
