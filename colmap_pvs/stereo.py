@@ -723,12 +723,15 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
                 depth_range, timings, vis=None, sources=()) -> None:
-    """Write one pass's maps (the depth last: it marks the pass done), then its previews.
+    """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
+    then its previews.
 
     ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``. Preview
     names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
     t0 = time.perf_counter()
+    # The old depth goes first: new provenance beside an old depth would look done after a crash.
+    ws.depth_map_path(name, stage).unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
     if vis is not None:
         write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",

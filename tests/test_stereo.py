@@ -415,3 +415,34 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
         # a factor 2 from the prior: exp(-ln 2 / 0.05) ~ 1e-6 of the network's confidence (1)
         assert conf_on[has].max() < 1e-5
         np.testing.assert_allclose(conf_off[has], 1.0)
+
+
+@pytest.mark.parametrize("stage", ["photometric", "geometric"])
+def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monkeypatch, stage):
+    """An overwrite that dies after the new provenance but before the new depth must not look done
+    (the old depth beside the new provenance would)."""
+    from colmap_pvs.io.workspace import Workspace
+
+    ws = Workspace(tmp_path)
+    for sub in ("depth_maps", "normal_maps", "confidence_maps", "provenance", "visibility_maps"):
+        (ws.stereo_dir / sub).mkdir(parents=True)
+    depth = np.full((6, 8), 2.0, np.float32)
+    normals = np.tile(np.array([0.0, 0.0, -1.0], np.float32), (6, 8, 1))
+    conf = np.full((6, 8), 0.5, np.float32)
+
+    def write(settings):
+        stereo_module._write_pass(ws, "a.png", stage, depth, normals, conf, settings, {}, False,
+                                  (1.0, 3.0), {})
+
+    old, new = {"v": 1}, {"v": 2}
+    write(old)
+    assert stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(old), (8, 6))
+
+    def dies(path, array):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(stereo_module, "write_depth_map", dies)
+    with pytest.raises(OSError):
+        write(new)
+    assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(new), (8, 6))
+    assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(old), (8, 6))
