@@ -45,10 +45,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .completion import complete_depth, completed_confidence, splat_depths
+from .completion import complete_depth, completed_confidence, plane_deviation, splat_depths
 from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
 from .consistency import SourceMaps, check_consistency
-from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, WorkspaceError
+from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, ShapeError, WorkspaceError
 from .evaluate import file_sha256
 from .geometry import sparse_depth_map, to_homogeneous
 from .io.cleanup import remove_orphan_temps
@@ -78,8 +78,10 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 4, "filled": 1}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 5, "filled": 1}
 Stage = Literal["photometric", "geometric", "filled"]
+#: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
+GEOM_DEVIATION_SCALE = 0.02
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
@@ -825,19 +827,28 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
 # --------------------------------------------------------------------------- geometric pass
 
 
-def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None) -> np.ndarray:
+def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
+                         deviation: np.ndarray | None = None) -> np.ndarray:
     """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
 
-    ``c = sum_s v_s * agree_s / S``: the fraction of the ``S`` sources that confirm the pixel, each
-    weighted by the network's learned visibility ``v_s`` of that source at the pixel (``agree``
-    ``[S, H, W]``, ``visibility`` ``[S, H, W]`` or ``None`` for all ones). Chosen by measurement on
-    hololens-dev (``benchmarks/RESULTS.md``): it ranks errors better than the network's probability
-    mass (which does not rank the consistent pixels at all), the agreement count alone, or the
-    reprojection and depth errors.
+    ``c = exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * agree_s / S``: the fraction of the ``S``
+    sources that confirm the pixel, each weighted by the network's learned visibility ``v_s`` of that
+    source at the pixel (``agree`` ``[S, H, W]``, ``visibility`` ``[S, H, W]`` or ``None`` for all
+    ones), times a factor for how far the pixel stands off the local plane of the kept pixels around
+    it (``deviation`` ``e`` ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0).
+    Chosen by measurement on hololens-dev (``benchmarks/RESULTS.md``): the weighted fraction ranks
+    errors better than the network's probability mass (which does not rank the consistent pixels at
+    all), the agreement count alone, or the reprojection and depth errors; the deviation factor
+    ranks them better still.
     """
     S = max(agree.shape[0], 1)
     weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
-    return np.clip(weighted.sum(0) / S, 0.0, 1.0).astype(np.float32)
+    conf = weighted.sum(0) / S
+    if deviation is not None:
+        if deviation.shape != conf.shape:
+            raise ShapeError(f"deviation must be {conf.shape}, got {deviation.shape}")
+        conf = conf * np.exp(-np.nan_to_num(deviation, nan=np.inf) / GEOM_DEVIATION_SCALE)
+    return np.clip(conf, 0.0, 1.0).astype(np.float32)
 
 
 def _load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
@@ -919,7 +930,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
     timings["consistency"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    conf = geometric_confidence(res.agree, vis)
+    conf = geometric_confidence(res.agree, vis, plane_deviation(np.where(keep, depth, 0.0)))
     keep &= conf >= cfg.geom_min_confidence
     depth = np.where(keep, depth, 0.0).astype(np.float32)
     conf = np.where(keep, conf, 0.0).astype(np.float32)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from colmap_pvs.completion import complete_depth, completed_confidence, splat_depths
+from colmap_pvs.completion import complete_depth, completed_confidence, plane_deviation, splat_depths
 from colmap_pvs.errors import ShapeError
 
 
@@ -152,3 +152,47 @@ def test_splat_depths_on_a_slanted_plane_with_a_half_size_source():
     half_pixel = np.abs(np.diff(truth, axis=1)).max() / 2
     err = np.abs(depth[ok] - truth[ok])
     assert np.median(err) < 0.25 * half_pixel
+
+
+def test_plane_deviation_is_small_on_a_plane_and_large_off_it():
+    """A slanted plane (affine in inverse depth) deviates < 0.5 % from its own fit away from the
+    borders of what is kept (< 2 % at them); a pixel 10 % off it stands out by several %; the empty
+    pixels read 0."""
+    H, W = 60, 80
+    yy, xx = np.mgrid[0:H, 0:W]
+    depth = (1.0 / (0.4 + 0.003 * xx + 0.002 * yy)).astype(np.float32)
+    depth[:, :10] = 0.0  # nothing kept there
+    dev = plane_deviation(depth)
+    assert dev.shape == (H, W) and dev.dtype == np.float32
+    assert np.all(dev[:, :10] == 0)
+    assert dev[4:-4, 14:-4].max() < 0.005  # away from the borders of the kept region
+    assert dev[:, 10:].max() < 0.02  # border cells hold part of their pixels (documented bias)
+    bumped = depth.copy()
+    bumped[30, 40] *= 1.10
+    dev = plane_deviation(bumped)
+    assert dev[30, 40] > 0.05
+    assert np.median(dev[:, 10:]) < 0.005
+    assert not plane_deviation(np.zeros((8, 8), np.float32)).any()
+    with pytest.raises(ShapeError):
+        plane_deviation(np.zeros((2, 8, 8), np.float32))
+
+
+def test_geometric_confidence_ranks_off_plane_pixels_lower():
+    """Same agreement, more deviation from the local plane: lower confidence; no deviation: the
+    visibility-weighted fraction of agreeing sources."""
+    from colmap_pvs.stereo import GEOM_DEVIATION_SCALE, geometric_confidence
+
+    agree = np.ones((4, 2, 3), bool)
+    agree[3] = False
+    vis = np.full((4, 2, 3), 0.8, np.float32)
+    base = geometric_confidence(agree, vis)
+    np.testing.assert_allclose(base, 0.6, rtol=1e-6)
+    dev = np.zeros((2, 3), np.float32)
+    dev[0, 1] = GEOM_DEVIATION_SCALE
+    dev[1, 2] = np.nan  # unmeasurable: no confidence
+    conf = geometric_confidence(agree, vis, dev)
+    np.testing.assert_allclose(conf[0, 1], 0.6 / np.e, rtol=1e-5)
+    assert conf[1, 2] == 0.0
+    np.testing.assert_allclose(conf[0, 0], 0.6, rtol=1e-6)
+    with pytest.raises(ShapeError):
+        geometric_confidence(agree, vis, np.zeros((3, 3), np.float32))
