@@ -51,6 +51,22 @@ def _pooled_inverse_depth(kept: np.ndarray, factor: int) -> np.ndarray:
     return np.where(count > 0, count / np.maximum(total, 1e-300), 0.0).astype(np.float32)
 
 
+def _plane_fit_inverse_depth(kept: np.ndarray, factor: int, min_weight: float,
+                             sigmas: tuple[float, ...]) -> np.ndarray | None:
+    """``[H, W]`` inverse depth of the local plane fit of ``kept`` (finite, 0 = none): pooled into
+    ``factor`` cells, :func:`~colmap_pvs.model.cost.affine_fill_inverse_depth` at ``sigmas`` (cells),
+    bilinear back to the pixels. ``None`` when nothing is kept."""
+    H, W = kept.shape
+    hint = _pooled_inverse_depth(kept, factor)
+    if not (hint > 0).any():
+        return None
+    with torch.no_grad():
+        inv = affine_fill_inverse_depth(torch.from_numpy(hint)[None, None], sigmas=sigmas,
+                                        min_weight=min_weight)[0, 0].numpy()
+    hc, wc = hint.shape
+    return resize_bilinear(inv.astype(np.float32), hc * factor, wc * factor)[:H, :W]
+
+
 def complete_depth(
     kept: np.ndarray, fallback: np.ndarray, factor: int = 4, min_weight: float = 6.0
 ) -> np.ndarray:
@@ -76,16 +92,10 @@ def complete_depth(
         raise ShapeError(f"kept and fallback must be the same [H, W], got {kept.shape} and {fallback.shape}")
     if factor < 1:
         raise ValueError(f"factor must be >= 1, got {factor}")
-    H, W = kept.shape
     kept = np.where(np.isfinite(kept) & (kept > 0), kept, 0.0)  # NaN / inf count as dropped
-    hint = _pooled_inverse_depth(kept, factor)
-    if not (hint > 0).any():
+    inv = _plane_fit_inverse_depth(kept, factor, min_weight, FILL_SIGMAS)
+    if inv is None:
         return np.where(kept > 0, kept, fallback).astype(np.float32)
-    with torch.no_grad():
-        inv = affine_fill_inverse_depth(torch.from_numpy(hint)[None, None], sigmas=FILL_SIGMAS,
-                                        min_weight=min_weight)[0, 0].numpy()
-    hc, wc = hint.shape
-    inv = resize_bilinear(inv.astype(np.float32), hc * factor, wc * factor)[:H, :W]
     fill = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), fallback)
     return np.where(kept > 0, kept, fill).astype(np.float32)
 
@@ -112,16 +122,10 @@ def plane_deviation(kept: np.ndarray, factor: int = 4, min_weight: float = 6.0) 
     """
     if kept.ndim != 2:
         raise ShapeError(f"kept must be [H, W], got {kept.shape}")
-    H, W = kept.shape
     kept = np.where(np.isfinite(kept) & (kept > 0), kept, 0.0)
-    hint = _pooled_inverse_depth(kept, factor)
-    if not (hint > 0).any():
-        return np.zeros((H, W), np.float32)
-    with torch.no_grad():
-        inv = affine_fill_inverse_depth(torch.from_numpy(hint)[None, None], sigmas=DEVIATION_SIGMAS,
-                                        min_weight=min_weight)[0, 0].numpy()
-    hc, wc = hint.shape
-    inv = resize_bilinear(inv.astype(np.float32), hc * factor, wc * factor)[:H, :W]
+    inv = _plane_fit_inverse_depth(kept, factor, min_weight, DEVIATION_SIGMAS)
+    if inv is None:
+        return np.zeros(kept.shape, np.float32)
     return np.where(kept > 0, np.abs(kept * inv - 1.0), 0.0).astype(np.float32)
 
 

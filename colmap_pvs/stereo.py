@@ -930,9 +930,10 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
     timings["consistency"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    conf = geometric_confidence(res.agree, vis, plane_deviation(np.where(keep, depth, 0.0)))
-    keep &= conf >= cfg.geom_min_confidence
     depth = np.where(keep, depth, 0.0).astype(np.float32)
+    conf = geometric_confidence(res.agree, vis, plane_deviation(depth))
+    keep &= conf >= cfg.geom_min_confidence
+    depth[~keep] = 0.0
     conf = np.where(keep, conf, 0.0).astype(np.float32)
     timings["confidence"] = time.perf_counter() - t0
     t0 = time.perf_counter()
