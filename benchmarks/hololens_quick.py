@@ -6,6 +6,10 @@ evaluation), for comparing checkpoints and stereo settings in a few minutes::
     python benchmarks/hololens_quick.py --checkpoint colmap_pvs/weights/pvsnet_default.pt --tag base
     python benchmarks/hololens_quick.py --tag tta30 --stereo adapt_steps=30
     python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag full   # the 60 refs
+    python benchmarks/hololens_quick.py --tag base --resume --stereo geom_fill_segments=false
+
+``--resume`` keeps the tag's maps and recomputes only the passes whose settings changed (the
+stereo step's own resume), for trying a later pass's settings without rerunning the network.
 
 ``--stereo key=value`` sets any ``StereoConfig`` field. Prints coverage, MAE, AbsRel and the % of
 pixels within 1 / 2 / 5 % for the photometric, geometric and filled maps (those written).
@@ -40,6 +44,7 @@ def main() -> int:
     p.add_argument("--num_views", type=int, default=5)
     p.add_argument("--disturbed", action="store_true", help="also: 2 of the sources replaced by far frames")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--resume", action="store_true", help="keep the tag's current maps (no overwrite)")
     p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
     p.add_argument("--views", nargs="*", default=[], metavar="KEY=VALUE", help="ViewSelectionConfig fields")
     a = p.parse_args()
@@ -66,7 +71,7 @@ def main() -> int:
         settings.append(("disturbed", far))
     extra = rd.parse_overrides(a.stereo)
     for label, sources in settings:
-        ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse)
+        ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse, a.resume)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
         fields = {
             "workspace_path": str(ws),
@@ -74,7 +79,7 @@ def main() -> int:
             "max_image_size": a.max_image_size,
             "checkpoint": str(a.checkpoint.resolve()),
             "threads": a.threads,
-            "overwrite": True,
+            "overwrite": not a.resume,
             "device": "cpu",
             **extra,
         }

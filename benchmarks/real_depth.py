@@ -122,14 +122,15 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def make_workspace(root: Path, images: Path, sparse: Path) -> Path:
-    """A dense workspace with linked images/ and sparse/ and an empty stereo/."""
+def make_workspace(root: Path, images: Path, sparse: Path, keep_stereo: bool = False) -> Path:
+    """A dense workspace with linked images/ and sparse/ and an empty stereo/ (kept as it is with
+    ``keep_stereo``, for a resumed run)."""
     root.mkdir(parents=True, exist_ok=True)
     _link(images, root / "images")
     _link(sparse, root / "sparse")
-    if (root / "stereo").exists():
+    if (root / "stereo").exists() and not keep_stereo:
         shutil.rmtree(root / "stereo")
-    (root / "stereo").mkdir()
+    (root / "stereo").mkdir(exist_ok=True)
     return root
 
 

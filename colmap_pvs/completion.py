@@ -36,6 +36,23 @@ SPLAT_AGREEMENT = 0.03
 #: Scales of the plane fit, in cells of the pooled grid (a cell is ``factor`` pixels).
 FILL_SIGMAS = (2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
 
+#: Canny thresholds (on 0-255 grey) of the segmentations of :func:`segment_planes`, finest first.
+SEGMENT_EDGE_THRESHOLDS = ((30, 90), (60, 180), (100, 300))
+
+#: Relative inverse-depth residual within which a known pixel is an inlier of its segment's plane.
+SEGMENT_INLIER_RESIDUAL = 0.03
+
+#: Iterations of the robust plane fit: a least-squares start, two reweighted (L1-like) steps, then
+#: least squares on the inliers (on hololens-dev the inlier sets settle by about the ninth).
+SEGMENT_IRLS_STEPS = 9
+
+#: Window (pixels) in which the coarsest segmentation needs as many inliers as outliers of the planes.
+SEGMENT_LOCAL_WINDOW = 31
+
+#: Smallest spread (standard deviation, pixels) of a segment's inliers across their weakest axis:
+#: below it they lie on a line and the plane's tilt across it is a guess.
+SEGMENT_MIN_SPREAD = 2.0
+
 
 def _pooled_inverse_depth(kept: np.ndarray, factor: int) -> np.ndarray:
     """``[ceil(H/f), ceil(W/f)]`` depth of the mean inverse depth of each cell's kept pixels (0: none)."""
@@ -129,6 +146,130 @@ def plane_deviation(kept: np.ndarray, factor: int = 4, min_weight: float = 6.0) 
     return np.where(kept > 0, np.abs(kept * inv - 1.0), 0.0).astype(np.float32)
 
 
+def _segment_planes_once(
+    inv: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int, min_inliers: float,
+    guard: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none) and inlier fraction."""
+    import cv2
+
+    H, W = inv.shape
+    edges = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), *thresholds)
+    edges = cv2.dilate(edges, np.ones((3, 3), np.uint8))
+    count, labels = cv2.connectedComponents((edges == 0).astype(np.uint8), connectivity=4)
+    known = (inv > 0) & (labels > 0)  # label 0: the edges, which belong to no segment
+    n_known = np.bincount(labels[known], minlength=count)
+    known &= (n_known >= min_pixels)[labels]
+    rows, cols = np.nonzero(known)
+    none = np.zeros((H, W)), np.zeros((H, W), np.float32)
+    if not rows.size:
+        return none
+    order = np.argsort(labels[rows, cols], kind="stable")
+    rows, cols = krows, kcols = rows[order], cols[order]
+    lab = labels[rows, cols]
+    segs, starts, sizes = np.unique(lab, return_index=True, return_counts=True)
+    idx = np.repeat(np.arange(segs.size), sizes)  # each known pixel's segment, 0..len(segs)-1
+    z = inv[rows, cols].astype(np.float64)
+    u, v = (cols + 0.5 - W / 2) / W, (rows + 0.5 - H / 2) / W  # centred, so the fit is well scaled
+    feats = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v, z, u * z, v * z], axis=1)
+    weights = np.ones_like(z)
+    for step in range(SEGMENT_IRLS_STEPS):  # two reweighted L1 steps, then least squares on the inliers
+        m = np.add.reduceat(feats * weights[:, None], starts, axis=0)  # [segments, 9]
+        normal = m[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + np.eye(3)[None] * 1e-9
+        plane = np.linalg.solve(normal, m[:, 6:9, None])[..., 0]  # [segments, 3]: a, b, c
+        residual = np.abs((plane[idx, 0] + plane[idx, 1] * u + plane[idx, 2] * v) / z - 1.0)
+        inlier = residual <= SEGMENT_INLIER_RESIDUAL
+        weights = inlier.astype(np.float64) if step >= 2 else 1.0 / np.maximum(residual, 0.005)
+    m = np.add.reduceat(feats[:, :6] * inlier[:, None], starts, axis=0)
+    n_in = np.maximum(m[:, 0], 1)
+    mean_u, mean_v = m[:, 1] / n_in, m[:, 2] / n_in
+    cuu, cuv, cvv = m[:, 3] / n_in - mean_u**2, m[:, 4] / n_in - mean_u * mean_v, m[:, 5] / n_in - mean_v**2
+    weakest = 0.5 * (cuu + cvv) - np.sqrt(0.25 * (cuu - cvv) ** 2 + cuv**2)  # smallest eigenvalue
+    z_in = np.where(inlier, z, np.nan)
+    lo, hi = np.fmin.reduceat(z_in, starts), np.fmax.reduceat(z_in, starts)
+    fraction = m[:, 0] / sizes
+    good = (fraction >= min_inliers) & (weakest * W * W >= SEGMENT_MIN_SPREAD**2)
+    if not good.any():
+        return none
+    if guard:  # known pixels of the accepted segments on / off their plane, counted around each pixel
+        on = good[idx]
+        tally = np.zeros((2, H, W), np.float32)
+        tally[0, krows[on & inlier], kcols[on & inlier]] = 1.0
+        tally[1, krows[on & ~inlier], kcols[on & ~inlier]] = 1.0
+        win = (SEGMENT_LOCAL_WINDOW, SEGMENT_LOCAL_WINDOW)
+        local_in, local_out = (cv2.boxFilter(t, -1, win, normalize=False) for t in tally)
+    segs, plane, lo, hi, fraction = segs[good], plane[good], lo[good], hi[good], fraction[good]
+    lookup = np.full(count, -1)
+    lookup[segs] = np.arange(segs.size)
+    rows, cols = np.nonzero(lookup[labels] >= 0)
+    k = lookup[labels[rows, cols]]
+    out = plane[k, 0] + plane[k, 1] * ((cols + 0.5 - W / 2) / W) + plane[k, 2] * ((rows + 0.5 - H / 2) / W)
+    # Within a factor 2 of the inliers' inverse depths: no far extrapolation of a tilted fit.
+    ok = (out >= 0.5 * lo[k]) & (out <= 2.0 * hi[k])
+    if guard:  # a segment spanning two surfaces must not give the majority's plane to the other
+        ok &= local_in[rows, cols] >= local_out[rows, cols]
+    plane_inv, frac = none
+    plane_inv[rows[ok], cols[ok]] = out[ok]
+    frac[rows[ok], cols[ok]] = fraction[k[ok]]
+    return plane_inv, frac
+
+
+def segment_planes(
+    known: np.ndarray,
+    image: np.ndarray,
+    *,
+    min_pixels: int = 30,
+    min_inliers: float = 0.6,
+    thresholds: tuple[tuple[int, int], ...] = SEGMENT_EDGE_THRESHOLDS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth from one robust plane per colour segment of the image (the planar prior of TAPA-MVS).
+
+    An untextured wall or cupboard door is a region without image edges whose known pixels (its
+    textured specks and the inner side of its borders) lie on one plane. The image is cut into the
+    connected regions between its edges (Canny at ``thresholds``, dilated by one pixel, 4-connected);
+    each region with at least ``min_pixels`` known pixels fits a plane in inverse depth
+    (``1/d = a + b u + c v``, exact on any 3D plane) by iteratively reweighted least squares, and
+    gives its depth to every pixel of the region where at least ``min_inliers`` of its known pixels
+    lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
+    (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within a factor 2 of their inverse depths. The
+    segmentations go from fine to coarse; a pixel takes the finest region that gives it a depth.
+    The coarsest one's regions can span two surfaces whose boundary shows only a weak edge (an
+    occlusion edge of one colour), so there a pixel also needs at least as many inliers as outliers
+    among the known pixels within :data:`SEGMENT_LOCAL_WINDOW` of it.
+
+    Args:
+        known: ``[H, W]`` depth, 0 (or non-finite) where unknown.
+        image: ``[3, H, W]`` RGB in ``[0, 1]`` (or ``[H, W]`` grey), the same size.
+        min_pixels: known pixels a region needs; min_inliers: the fraction of them on its plane.
+
+    Returns:
+        depth ``[H, W]`` float32 (0 where no region gives one) and ``[H, W]`` float32 the inlier
+        fraction of the region that gave it (0 where none).
+    """
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 3 and image.shape[0] == 3:
+        image = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), image, axes=1)
+    if known.ndim != 2 or image.shape != known.shape:
+        raise ShapeError(f"known must be [H, W] and image [3, H, W] or [H, W] of the same size, got "
+                         f"{known.shape} and {image.shape}")
+    if min_pixels < 3 or not 0.0 <= min_inliers <= 1.0:
+        raise ValueError(
+            f"min_pixels must be >= 3 and min_inliers in [0, 1], got {min_pixels} and {min_inliers}"
+        )
+    grey = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    known = np.where(np.isfinite(known) & (known > 0), known, 0.0)
+    inv = np.where(known > 0, 1.0 / np.maximum(known, 1e-12), 0.0)
+    depth = np.zeros(known.shape, np.float64)
+    fraction = np.zeros(known.shape, np.float32)
+    for i, level in enumerate(thresholds):
+        coarsest = i == len(thresholds) - 1 and i > 0
+        plane_inv, frac = _segment_planes_once(inv, grey, level, min_pixels, min_inliers, coarsest)
+        new = (depth == 0) & (plane_inv > 0)
+        depth[new] = 1.0 / plane_inv[new]
+        fraction[new] = frac[new]
+    return depth.astype(np.float32), fraction
+
+
 def splat_depths(
     K: np.ndarray, cam_from_world: np.ndarray, size: tuple[int, int], sources: list[SourceMaps],
     min_sources: int = 2,
@@ -182,22 +323,28 @@ def splat_depths(
 
 def completed_confidence(
     kept: np.ndarray, splatted: np.ndarray, geometric: np.ndarray, photometric: np.ndarray,
-    splat_support: np.ndarray,
+    splat_support: np.ndarray, segmented: np.ndarray | None = None, segment_inliers: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``[H, W]`` confidence of a completed map in ``[0, 1]``: kept, then splatted, then fitted pixels.
+    """``[H, W]`` confidence of a completed map in ``[0, 1]``: kept, then given, then fitted pixels.
 
     ``0.5 + 0.5 * geometric`` where ``kept``; ``0.25 + 0.25 * splat_support`` where ``splatted`` (the
-    fraction of the sources that agreed, in ``[0, 1]``); ``0.25 * photometric`` elsewhere (all inputs
-    ``[H, W]``, confidences in ``[0, 1]``). The sources confirmed the kept pixels, the splatted ones
-    come from pixels the sources kept, and nobody confirmed the fitted ones; within each group the
-    group's own confidence ranks.
+    fraction of the sources that agreed, in ``[0, 1]``); ``0.25 + 0.25 * segment_inliers`` where
+    ``segmented`` (the inlier fraction of the segment plane that gave the pixel,
+    :func:`segment_planes`); ``0.25 * photometric`` elsewhere (all inputs ``[H, W]``, confidences in
+    ``[0, 1]``). The sources confirmed the kept pixels, the splatted ones come from pixels the sources
+    kept, a segment's plane from the known pixels of its own surface, and nobody confirmed the fitted
+    ones; within each group the group's own confidence ranks. ``segmented`` wins over ``splatted``.
     """
-    shapes = {a.shape for a in (kept, splatted, geometric, photometric, splat_support)}
+    segmented = np.zeros_like(kept) if segmented is None else segmented
+    segment_inliers = np.zeros(kept.shape, np.float32) if segment_inliers is None else segment_inliers
+    arrays = (kept, splatted, geometric, photometric, splat_support, segmented, segment_inliers)
+    shapes = {None if a is None else a.shape for a in arrays}
     if len(shapes) != 1 or kept.ndim != 2:
-        raise ShapeError(f"the inputs must all be the same [H, W], got shapes {sorted(shapes)}")
+        raise ShapeError(f"the inputs must all be the same [H, W], got shapes {sorted(map(str, shapes))}")
 
     def unit(a):
         return np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0)
 
     conf = np.where(splatted, 0.25 + 0.25 * unit(splat_support), 0.25 * unit(photometric))
+    conf = np.where(segmented, 0.25 + 0.25 * unit(segment_inliers), conf)
     return np.where(kept, 0.5 + 0.5 * unit(geometric), conf).astype(np.float32)

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .completion import complete_depth, completed_confidence, plane_deviation, splat_depths
+from .completion import complete_depth, completed_confidence, plane_deviation, segment_planes, splat_depths
 from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
 from .consistency import SourceMaps, check_consistency
 from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, ShapeError, WorkspaceError
@@ -78,7 +78,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 5, "filled": 1}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 5, "filled": 2}
 Stage = Literal["photometric", "geometric", "filled"]
 #: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
 GEOM_DEVIATION_SCALE = 0.02
@@ -100,7 +100,12 @@ GEOMETRIC_SETTINGS = (
     "geom_min_confidence",
 )
 #: Settings that change the dense completion (with the geometric fingerprints it reads).
-FILLED_SETTINGS = ("geom_fill_min_sources",)
+FILLED_SETTINGS = (
+    "geom_fill_min_sources",
+    "geom_fill_segments",
+    "geom_fill_segment_min_pixels",
+    "geom_fill_segment_inliers",
+)
 
 
 @dataclass(frozen=True)
@@ -252,12 +257,28 @@ class StereoConfig:
         default=2,
         metadata={"help": "dense completion: sources whose kept depths must agree to give a dropped pixel"},
     )
+    geom_fill_segments: bool = field(
+        default=True,
+        metadata={
+            "help": "dense completion: a dropped pixel takes the robust plane of the known pixels of its "
+            "image segment (the region between image edges) where that plane fits them"
+        },
+    )
+    geom_fill_segment_min_pixels: int = field(
+        default=30, metadata={"help": "dense completion: known pixels a segment needs to give its plane"}
+    )
+    geom_fill_segment_inliers: float = field(
+        default=0.6,
+        metadata={"help": "dense completion: fraction of a segment's known pixels within 3 % of its plane"},
+    )
 
     def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
         from .config import check_range
 
         check_range("num_views", self.num_views, low=2)
         check_range("geom_fill_min_sources", self.geom_fill_min_sources, low=1)
+        check_range("geom_fill_segment_min_pixels", self.geom_fill_segment_min_pixels, low=3)
+        check_range("geom_fill_segment_inliers", self.geom_fill_segment_inliers, low=0.0, high=1.0)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
@@ -1035,13 +1056,26 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     kept = ref.depth > 0
     splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.geom_fill_min_sources)
     splatted = ~kept & (splat > 0)
+    known = np.where(kept, ref.depth, splat).astype(np.float32)
     timings["splat"] = time.perf_counter() - t0
+    segmented, inliers = np.zeros_like(kept), None
+    if cfg.geom_fill_segments:
+        t0 = time.perf_counter()
+        image = ctx.images.get(name, cfg.max_image_size, (w, h))
+        plane, inliers = segment_planes(known, image, min_pixels=cfg.geom_fill_segment_min_pixels,
+                                        min_inliers=cfg.geom_fill_segment_inliers)
+        segmented = ~kept & (plane > 0)
+        timings["segments"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    depth = complete_depth(np.where(kept, ref.depth, splat).astype(np.float32), photo)
-    conf = completed_confidence(kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)))
+    depth = complete_depth(known, photo)
+    if segmented.any():
+        depth = np.where(segmented, plane, depth).astype(np.float32)
+    conf = completed_confidence(kept, splatted & ~segmented, geo_conf, photo_conf,
+                                support / max(1, len(srcs)), segmented, inliers)
     timings["fit"] = time.perf_counter() - t0
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
-             "splatted_fraction": float(splatted.mean())}
+             "splatted_fraction": float((splatted & ~segmented).mean()),
+             "segmented_fraction": float(segmented.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
     ctx.submit_write(_write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
     return RefOutcome(name, "filled", "computed", seconds=time.perf_counter() - start, timings=timings)

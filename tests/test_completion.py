@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from colmap_pvs.completion import complete_depth, completed_confidence, plane_deviation, splat_depths
+from colmap_pvs.completion import (
+    complete_depth,
+    completed_confidence,
+    plane_deviation,
+    segment_planes,
+    splat_depths,
+)
 from colmap_pvs.errors import ShapeError
 
 
@@ -85,6 +91,104 @@ def test_completed_confidence_ranks_kept_then_splatted_then_fitted_pixels():
     np.testing.assert_allclose(conf[fitted], 0.25 * np.nan_to_num(photometric[fitted]), rtol=1e-6)
     with pytest.raises(ShapeError):
         completed_confidence(kept, splatted, geometric[:, :5], photometric, support)
+    # Segment planes rank with the pixels the sources gave, by their inlier fraction, over splatting.
+    segmented = fitted & (r > 0.9)
+    inliers = rng.random((30, 40)).astype(np.float32)
+    conf = completed_confidence(kept, splatted, geometric, photometric, support, segmented, inliers)
+    np.testing.assert_allclose(conf[segmented], 0.25 + 0.25 * inliers[segmented], rtol=1e-6)
+    rest = fitted & ~segmented
+    assert conf[kept].min() >= conf[segmented].max() and conf[segmented].min() >= conf[rest].max()
+
+
+def _two_walls(H: int = 96, W: int = 128):
+    """A left and a right wall of different grey and different slanted planes, split at column 64.
+
+    Returns the true depth ``[H, W]`` and the image ``[3, H, W]`` (flat grey per wall, a few textured
+    specks, a dark line at the split)."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    left = 1.0 / (0.40 + 0.0020 * xs + 0.0010 * ys)
+    right = 1.0 / (0.25 - 0.0005 * xs + 0.0015 * ys)
+    depth = np.where(xs < 64, left, right).astype(np.float32)
+    grey = np.where(xs < 64, 0.7, 0.4).astype(np.float32)
+    grey[:, 63:65] = 0.1
+    return depth, np.stack([grey] * 3)
+
+
+def _border_known(depth: np.ndarray, rng) -> np.ndarray:
+    """The pixels a geometric pass keeps on untextured walls: their borders and a few specks."""
+    known = np.zeros_like(depth)
+    H, W = depth.shape
+    band = np.zeros((H, W), bool)
+    band[:6], band[-6:], band[:, :6], band[:, -6:], band[:, 56:72] = True, True, True, True, True
+    band |= rng.random((H, W)) < 0.01
+    known[band] = depth[band]
+    return known
+
+
+def test_segment_planes_fill_each_wall_with_its_own_plane_from_its_borders():
+    """Each wall's middle, unknown, takes that wall's plane (not the other's, not a blend across the
+    edge between them), and every pixel the planes give is within 0.5 % of the truth."""
+    rng = np.random.default_rng(0)
+    depth, image = _two_walls()
+    known = _border_known(depth, rng)
+    out, inliers = segment_planes(known, image)
+    assert out.shape == depth.shape and out.dtype == np.float32 and inliers.dtype == np.float32
+    middle = np.zeros(depth.shape, bool)
+    middle[12:-12, 12:52], middle[12:-12, 76:-12] = True, True
+    assert (out[middle] > 0).all()
+    assert np.abs(out[middle] / depth[middle] - 1).max() < 0.005
+    given = out > 0
+    assert np.abs(out[given] / depth[given] - 1).max() < 0.005
+    assert np.all(inliers[given] > 0.95) and np.all(inliers[~given] == 0)
+    # The local plane fit of the same pixels blends the two walls near the split (16 % off there).
+    fit = complete_depth(known, np.ones_like(depth))
+    near = np.zeros(depth.shape, bool)
+    near[12:-12, 48:52], near[12:-12, 76:80] = True, True
+    assert np.abs(fit[near] / depth[near] - 1).max() > 0.05
+    assert np.abs(out[near] / depth[near] - 1).max() < 0.005
+
+
+def test_segment_planes_are_robust_to_wrong_known_pixels():
+    """A quarter of the known pixels 10-30 % off: the plane still comes from the right ones."""
+    rng = np.random.default_rng(1)
+    depth, image = _two_walls()
+    known = _border_known(depth, rng)
+    bad = (known > 0) & (rng.random(depth.shape) < 0.25)
+    known[bad] *= rng.uniform(1.1, 1.3, size=bad.sum()).astype(np.float32)
+    out, inliers = segment_planes(known, image)
+    given = out > 0
+    assert given[12:-12, 12:52].all() and given[12:-12, 76:-12].all()
+    assert np.abs(out[given] / depth[given] - 1).max() < 0.01
+    assert 0.6 < inliers[given].min() and inliers[given].max() < 0.85  # about 3 in 4 are inliers
+
+
+def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
+    """No depth where a segment's known pixels are too few, lie on one line, or are half on one
+    plane and half on another (under ``min_inliers``)."""
+    rng = np.random.default_rng(2)
+    depth, image = _two_walls()
+    line = np.zeros_like(depth)
+    line[40, :60] = depth[40, :60]  # the left wall known along one row only
+    line[:, 80] = depth[:, 80]  # the right wall known along one column only
+    out, _ = segment_planes(line, image)
+    assert not (out > 0).any()
+    few = np.where(rng.random(depth.shape) < 0.002, depth, 0.0)
+    assert (few > 0).sum() < 2 * 30
+    assert not (segment_planes(few, image)[0] > 0).any()
+    mixed = _border_known(depth, rng)
+    swap = (mixed > 0) & (rng.random(depth.shape) < 0.5)
+    mixed[swap] *= 1.5  # half the known pixels on a plane 50 % farther: no majority
+    assert not (segment_planes(mixed, image)[0] > 0).any()
+    mixed = _border_known(depth, rng)
+    swap = (mixed > 0) & (rng.random(depth.shape) < 0.3)
+    mixed[swap] *= 1.5  # 70 % on the true plane: given, exactly, unless the bar is above 70 %
+    out, _ = segment_planes(mixed, image)
+    assert (out > 0).mean() > 0.9 and np.abs(out[out > 0] / depth[out > 0] - 1).max() < 0.005
+    assert not (segment_planes(mixed, image, min_inliers=0.8)[0] > 0).any()
+    with pytest.raises(ShapeError):
+        segment_planes(depth, image[:, :10])
+    with pytest.raises(ValueError, match="min_pixels"):
+        segment_planes(depth, image, min_pixels=2)
 
 
 def _camera(x: float) -> np.ndarray:
@@ -196,3 +300,35 @@ def test_geometric_confidence_ranks_off_plane_pixels_lower():
     np.testing.assert_allclose(conf[0, 0], 0.6, rtol=1e-6)
     with pytest.raises(ShapeError):
         geometric_confidence(agree, vis, np.zeros((3, 3), np.float32))
+
+
+def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):
+    """A box 20 % nearer than the wall behind it, with an edge only the finer segmentations see and
+    too few known pixels of its own for a plane: the coarse segment that merges box and wall has the
+    wall's plane, and without the local check (a 1-pixel window) it would give it to the box."""
+    import colmap_pvs.completion as completion
+
+    H, W = 96, 128
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    wall = 1.0 / (0.30 + 0.0008 * xs + 0.0004 * ys)
+    box = np.zeros((H, W), bool)
+    box[24:72, 32:96] = True
+    depth = np.where(box, wall / 1.2, wall).astype(np.float32)
+    grey = np.where(box, 0.5 + 60 / 255, 0.5).astype(np.float32)  # 60 grey levels: not a coarse edge
+    rng = np.random.default_rng(3)
+    known = np.zeros_like(depth)
+    band = ~box & ((ys < 8) | (ys >= H - 8) | (xs < 8) | (xs >= W - 8) | (rng.random((H, W)) < 0.05))
+    known[band] = depth[band]
+    inside = np.argwhere(box)[rng.choice(box.sum(), 25, replace=False)]  # 25 < min_pixels
+    known[inside[:, 0], inside[:, 1]] = depth[inside[:, 0], inside[:, 1]]
+    interior = np.zeros((H, W), bool)
+    interior[40:56, 48:80] = True  # more than 15 pixels inside the box
+    out, _ = segment_planes(known, grey)
+    assert not (out[interior] > 0).any()
+    given = out > 0
+    assert given[~box].mean() > 0.9 and np.abs(out[given & ~box] / depth[given & ~box] - 1).max() < 0.005
+    monkeypatch.setattr(completion, "SEGMENT_LOCAL_WINDOW", 1)
+    unguarded, _ = segment_planes(known, grey)
+    unknown = interior & (known == 0)
+    assert (unguarded[unknown] > 0).all()
+    np.testing.assert_allclose(unguarded[unknown], wall[unknown], rtol=0.005)  # the wall's plane: wrong

@@ -231,9 +231,13 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     assert set(first.timings) >= {"load", "prior", "network", "normals", "writes", "geometric.consistency"}
     assert set(first.pass_seconds) == {"photometric", "geometric", "filled", "total"}
     assert sorted(first.filled_processed) == names and "filled.splat" in first.timings
+    assert "filled.segments" in first.timings
     # A setting of the dense completion: only that pass is recomputed.
     res = run_stereo(dataclasses.replace(cfg, geom_fill_min_sources=1))
     assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
+    res = run_stereo(dataclasses.replace(cfg, geom_fill_min_sources=1, geom_fill_segments=False))
+    assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
+    assert "filled.segments" not in res.timings
     # A geometric setting: the geometric pass and the completion that reads it.
     res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
     assert res.processed == [] and sorted(res.already_done) == names
