@@ -20,9 +20,10 @@ measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02):
    the same way.
 
 Every kept pixel stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the
-pixels the sources or the segment planes gave, then the fitted ones. The stereo step writes the result as ``NAME.filled.bin``
-in ``stereo/depth_maps`` and ``stereo/confidence_maps`` (``docs/CONVENTIONS.md``); COLMAP's fusion
-never reads it. Arrays are numpy ``[H, W]`` (depth in the map's units, 0 = none).
+pixels the sources or the segment planes gave, then the fitted ones. The stereo step writes the
+result as ``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
+(``docs/CONVENTIONS.md``); COLMAP's fusion never reads it. Arrays are numpy ``[H, W]`` (depth in
+the map's units, 0 = none).
 """
 
 from __future__ import annotations
@@ -152,10 +153,11 @@ def plane_deviation(kept: np.ndarray, factor: int = 4, min_weight: float = 6.0) 
 
 
 def _segment_planes_once(
-    inv: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int, min_inliers: float,
-    guard: bool,
+    inv: np.ndarray, targets: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int,
+    min_inliers: float, guard: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none) and inlier fraction."""
+    """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none) and inlier fraction,
+    for the segments that hold a target pixel."""
     import cv2
 
     H, W = inv.shape
@@ -164,7 +166,8 @@ def _segment_planes_once(
     count, labels = cv2.connectedComponents((edges == 0).astype(np.uint8), connectivity=4)
     known = (inv > 0) & (labels > 0)  # label 0: the edges, which belong to no segment
     n_known = np.bincount(labels[known], minlength=count)
-    known &= (n_known >= min_pixels)[labels]
+    wanted = np.bincount(labels[targets], minlength=count) > 0
+    known &= ((n_known >= min_pixels) & wanted)[labels]
     rows, cols = np.nonzero(known)
     none = np.zeros((H, W)), np.zeros((H, W), np.float32)
     if not rows.size:
@@ -222,6 +225,7 @@ def _segment_planes_once(
 def segment_planes(
     known: np.ndarray,
     image: np.ndarray,
+    targets: np.ndarray | None = None,
     *,
     min_pixels: int = 30,
     min_inliers: float = 0.6,
@@ -245,18 +249,21 @@ def segment_planes(
     Args:
         known: ``[H, W]`` depth, 0 (or non-finite) where unknown.
         image: ``[3, H, W]`` RGB in ``[0, 1]`` (or ``[H, W]`` grey), the same size.
+        targets: ``[H, W]`` bool, the pixels that need a depth (default: the unknown ones); only
+            segments holding one are fitted, and only targets are given a depth.
         min_pixels: known pixels a region needs; min_inliers: the fraction of them on its plane.
 
     Returns:
-        depth ``[H, W]`` float32 (0 where no region gives one) and ``[H, W]`` float32 the inlier
-        fraction of the region that gave it (0 where none).
+        depth ``[H, W]`` float32 (0 where no region gives one, and off the targets) and ``[H, W]``
+        float32 the inlier fraction of the region that gave it (0 where none).
     """
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 3 and image.shape[0] == 3:
         image = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), image, axes=1)
-    if known.ndim != 2 or image.shape != known.shape:
-        raise ShapeError(f"known must be [H, W] and image [3, H, W] or [H, W] of the same size, got "
-                         f"{known.shape} and {image.shape}")
+    targets = ~(np.isfinite(known) & (known > 0)) if targets is None else np.asarray(targets, bool)
+    if known.ndim != 2 or image.shape != known.shape or targets.shape != known.shape:
+        raise ShapeError(f"known and targets must be [H, W] and image [3, H, W] or [H, W], all of one "
+                         f"size, got {known.shape}, {targets.shape} and {image.shape}")
     if min_pixels < 3 or not 0.0 <= min_inliers <= 1.0:
         raise ValueError(
             f"min_pixels must be >= 3 and min_inliers in [0, 1], got {min_pixels} and {min_inliers}"
@@ -266,10 +273,12 @@ def segment_planes(
     inv = np.where(known > 0, 1.0 / np.maximum(known, 1e-12), 0.0)
     depth = np.zeros(known.shape, np.float64)
     fraction = np.zeros(known.shape, np.float32)
+    todo = targets.copy()
     for i, level in enumerate(thresholds):
         coarsest = i == len(thresholds) - 1 and i > 0
-        plane_inv, frac = _segment_planes_once(inv, grey, level, min_pixels, min_inliers, coarsest)
-        new = (depth == 0) & (plane_inv > 0)
+        plane_inv, frac = _segment_planes_once(inv, todo, grey, level, min_pixels, min_inliers, coarsest)
+        new = todo & (plane_inv > 0)
+        todo &= ~new
         depth[new] = 1.0 / plane_inv[new]
         fraction[new] = frac[new]
     return depth.astype(np.float32), fraction

@@ -1062,7 +1062,7 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     if cfg.geom_fill_segments:
         t0 = time.perf_counter()
         image = ctx.images.get(name, cfg.max_image_size, (w, h))
-        plane, inliers = segment_planes(known, image, min_pixels=cfg.geom_fill_segment_min_pixels,
+        plane, inliers = segment_planes(known, image, ~kept, min_pixels=cfg.geom_fill_segment_min_pixels,
                                         min_inliers=cfg.geom_fill_segment_inliers)
         segmented = ~kept & (plane > 0)
         timings["segments"] = time.perf_counter() - t0

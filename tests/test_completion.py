@@ -135,8 +135,8 @@ def test_segment_planes_fill_each_wall_with_its_own_plane_from_its_borders():
     assert out.shape == depth.shape and out.dtype == np.float32 and inliers.dtype == np.float32
     middle = np.zeros(depth.shape, bool)
     middle[12:-12, 12:52], middle[12:-12, 76:-12] = True, True
-    assert (out[middle] > 0).all()
-    assert np.abs(out[middle] / depth[middle] - 1).max() < 0.005
+    assert (out[middle & (known == 0)] > 0).all() and not (out[known > 0] > 0).any()  # targets only
+    assert np.abs(out[middle & (known == 0)] / depth[middle & (known == 0)] - 1).max() < 0.005
     given = out > 0
     assert np.abs(out[given] / depth[given] - 1).max() < 0.005
     assert np.all(inliers[given] > 0.95) and np.all(inliers[~given] == 0)
@@ -145,7 +145,11 @@ def test_segment_planes_fill_each_wall_with_its_own_plane_from_its_borders():
     near = np.zeros(depth.shape, bool)
     near[12:-12, 48:52], near[12:-12, 76:80] = True, True
     assert np.abs(fit[near] / depth[near] - 1).max() > 0.05
-    assert np.abs(out[near] / depth[near] - 1).max() < 0.005
+    assert np.abs(out[near & (known == 0)] / depth[near & (known == 0)] - 1).max() < 0.005
+    # Explicit targets: known pixels too (the completion replaces projected ones), or none at all.
+    every, _ = segment_planes(known, image, np.ones(depth.shape, bool))
+    assert (every[middle] > 0).all() and np.abs(every[middle] / depth[middle] - 1).max() < 0.005
+    assert not (segment_planes(known, image, np.zeros(depth.shape, bool))[0] > 0).any()
 
 
 def test_segment_planes_are_robust_to_wrong_known_pixels():
@@ -157,7 +161,10 @@ def test_segment_planes_are_robust_to_wrong_known_pixels():
     known[bad] *= rng.uniform(1.1, 1.3, size=bad.sum()).astype(np.float32)
     out, inliers = segment_planes(known, image)
     given = out > 0
-    assert given[12:-12, 12:52].all() and given[12:-12, 76:-12].all()
+    unknown = known == 0
+    middle = np.zeros(depth.shape, bool)
+    middle[12:-12, 12:52], middle[12:-12, 76:-12] = True, True
+    assert given[middle & unknown].all()
     assert np.abs(out[given] / depth[given] - 1).max() < 0.01
     assert 0.6 < inliers[given].min() and inliers[given].max() < 0.85  # about 3 in 4 are inliers
 
@@ -183,7 +190,7 @@ def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
     swap = (mixed > 0) & (rng.random(depth.shape) < 0.3)
     mixed[swap] *= 1.5  # 70 % on the true plane: given, exactly, unless the bar is above 70 %
     out, _ = segment_planes(mixed, image)
-    assert (out > 0).mean() > 0.9 and np.abs(out[out > 0] / depth[out > 0] - 1).max() < 0.005
+    assert (out[mixed == 0] > 0).mean() > 0.9 and np.abs(out[out > 0] / depth[out > 0] - 1).max() < 0.005
     assert not (segment_planes(mixed, image, min_inliers=0.8)[0] > 0).any()
     with pytest.raises(ShapeError):
         segment_planes(depth, image[:, :10])
@@ -326,7 +333,8 @@ def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):
     out, _ = segment_planes(known, grey)
     assert not (out[interior] > 0).any()
     given = out > 0
-    assert given[~box].mean() > 0.9 and np.abs(out[given & ~box] / depth[given & ~box] - 1).max() < 0.005
+    assert given[~box & (known == 0)].mean() > 0.9
+    assert np.abs(out[given & ~box] / depth[given & ~box] - 1).max() < 0.005
     monkeypatch.setattr(completion, "SEGMENT_LOCAL_WINDOW", 1)
     unguarded, _ = segment_planes(known, grey)
     unknown = interior & (known == 0)
