@@ -86,6 +86,7 @@ def main() -> int:
         start = time.perf_counter()
         result = run_stereo(config_from_dict(StereoConfig, fields))
         wall = time.perf_counter() - start
+        done = len(result.processed) + len(result.already_done)  # computed now or kept (--resume)
         for kind in ("photometric", "geometric", "filled"):
             if not any((ws / "stereo" / "depth_maps").glob(f"*.{kind}.bin")):
                 continue
@@ -101,7 +102,7 @@ def main() -> int:
                 best_half = curve["error"][curve["fractions"].index(0.5)]
                 sp = f", AbsRel of the 50 % most confident {best_half:.4f}"
             print(
-                f"{a.tag} {label} {kind}: {len(result.processed)}/{len(refs)} refs, coverage "
+                f"{a.tag} {label} {kind}: {done}/{len(refs)} refs, coverage "
                 f"{s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under "
                 f"{sorted(s.rel_under_pct)}: {under}{sp}; {wall:.0f} s wall "
                 f"(adaptation {result.adapt_seconds:.0f} s)",

@@ -209,7 +209,7 @@ def _segment_planes_once(
     segs, plane, lo, hi, fraction = segs[good], plane[good], lo[good], hi[good], fraction[good]
     lookup = np.full(count, -1)
     lookup[segs] = np.arange(segs.size)
-    rows, cols = np.nonzero(lookup[labels] >= 0)
+    rows, cols = np.nonzero((lookup[labels] >= 0) & targets)
     k = lookup[labels[rows, cols]]
     out = plane[k, 0] + plane[k, 1] * ((cols + 0.5 - W / 2) / W) + plane[k, 2] * ((rows + 0.5 - H / 2) / W)
     # Within a factor 2 of the inliers' inverse depths: no far extrapolation of a tilted fit.
