@@ -86,7 +86,11 @@ def main() -> int:
         start = time.perf_counter()
         result = run_stereo(config_from_dict(StereoConfig, fields))
         wall = time.perf_counter() - start
-        done = len(result.processed) + len(result.already_done)  # computed now or kept (--resume)
+        done = {  # per pass, the references computed now or kept as they were (--resume)
+            "photometric": result.processed + result.already_done,
+            "geometric": result.geometric_processed + result.geometric_done,
+            "filled": result.filled_processed + result.filled_done,
+        }
         for kind in ("photometric", "geometric", "filled"):
             if not any((ws / "stereo" / "depth_maps").glob(f"*.{kind}.bin")):
                 continue
@@ -102,7 +106,7 @@ def main() -> int:
                 best_half = curve["error"][curve["fractions"].index(0.5)]
                 sp = f", AbsRel of the 50 % most confident {best_half:.4f}"
             print(
-                f"{a.tag} {label} {kind}: {done}/{len(refs)} refs, coverage "
+                f"{a.tag} {label} {kind}: {len(set(done[kind]) & set(refs))}/{len(refs)} refs, coverage "
                 f"{s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under "
                 f"{sorted(s.rel_under_pct)}: {under}{sp}; {wall:.0f} s wall "
                 f"(adaptation {result.adapt_seconds:.0f} s)",

@@ -205,7 +205,9 @@ def _segment_planes_once(
         tally[0, krows[on & inlier], kcols[on & inlier]] = 1.0
         tally[1, krows[on & ~inlier], kcols[on & ~inlier]] = 1.0
         win = (SEGMENT_LOCAL_WINDOW, SEGMENT_LOCAL_WINDOW)
-        local_in, local_out = (cv2.boxFilter(t, -1, win, normalize=False) for t in tally)
+        local_in, local_out = (
+            cv2.boxFilter(t, -1, win, normalize=False, borderType=cv2.BORDER_CONSTANT) for t in tally
+        )
     segs, plane, lo, hi, fraction = segs[good], plane[good], lo[good], hi[good], fraction[good]
     lookup = np.full(count, -1)
     lookup[segs] = np.arange(segs.size)
@@ -242,9 +244,12 @@ def segment_planes(
     lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
     (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within a factor 2 of their inverse depths. The
     segmentations go from fine to coarse; a pixel takes the finest region that gives it a depth.
-    The coarsest one's regions can span two surfaces whose boundary shows only a weak edge (an
-    occlusion edge of one colour), so there a pixel also needs at least as many inliers as outliers
-    among the known pixels within :data:`SEGMENT_LOCAL_WINDOW` of it.
+    The coarsest one's regions (when there are at least two segmentations) can span two surfaces
+    whose boundary shows only a weak edge (an occlusion edge of one colour), so there a pixel also
+    needs at least as many inliers as outliers among the accepted regions' known pixels in the
+    :data:`SEGMENT_LOCAL_WINDOW`-pixel square around it; a pixel with none of them around it passes
+    (the middle of a large wall), so a surface without a single known pixel of its own can still take
+    its neighbour's plane.
 
     Args:
         known: ``[H, W]`` depth, 0 (or non-finite) where unknown.
@@ -258,10 +263,11 @@ def segment_planes(
         float32 the inlier fraction of the region that gave it (0 where none).
     """
     image = np.asarray(image, dtype=np.float32)
+    known = np.asarray(known, dtype=np.float32)
     if image.ndim == 3 and image.shape[0] == 3:
         image = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), image, axes=1)
     targets = ~(np.isfinite(known) & (known > 0)) if targets is None else np.asarray(targets, bool)
-    if known.ndim != 2 or image.shape != known.shape or targets.shape != known.shape:
+    if known.ndim != 2 or known.size == 0 or image.shape != known.shape or targets.shape != known.shape:
         raise ShapeError(f"known and targets must be [H, W] and image [3, H, W] or [H, W], all of one "
                          f"size, got {known.shape}, {targets.shape} and {image.shape}")
     if min_pixels < 3 or not 0.0 <= min_inliers <= 1.0:
@@ -352,9 +358,9 @@ def completed_confidence(
     segmented = np.zeros_like(kept) if segmented is None else segmented
     segment_inliers = np.zeros(kept.shape, np.float32) if segment_inliers is None else segment_inliers
     arrays = (kept, splatted, geometric, photometric, splat_support, segmented, segment_inliers)
-    shapes = {None if a is None else a.shape for a in arrays}
+    shapes = {a.shape for a in arrays}
     if len(shapes) != 1 or kept.ndim != 2:
-        raise ShapeError(f"the inputs must all be the same [H, W], got shapes {sorted(map(str, shapes))}")
+        raise ShapeError(f"the inputs must all be the same [H, W], got shapes {sorted(shapes)}")
 
     def unit(a):
         return np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0)

@@ -269,7 +269,8 @@ class StereoConfig:
     )
     geom_fill_segment_inliers: float = field(
         default=0.6,
-        metadata={"help": "dense completion: fraction of a segment's known pixels within 3 % of its plane"},
+        metadata={"help": "dense completion: least fraction of a segment's known pixels within 3 % of its "
+                  "plane for the segment to give it"},
     )
 
     def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
