@@ -152,16 +152,22 @@ def plane_deviation(kept: np.ndarray, factor: int = 4, min_weight: float = 6.0) 
     return np.where(kept > 0, np.abs(kept * inv - 1.0), 0.0).astype(np.float32)
 
 
+def _centred(rows: np.ndarray, cols: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel centres as plane-fit coordinates: centred on the image and divided by its width, so the
+    fit's normal equations are well scaled."""
+    return (cols + 0.5 - W / 2) / W, (rows + 0.5 - H / 2) / W
+
+
 def _segment_planes_once(
     inv: np.ndarray, targets: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int,
     min_inliers: float, guard: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none) and inlier fraction,
-    for the segments that hold a target pixel."""
+    for the segments that hold a target pixel (``grey``: the blurred uint8 image)."""
     import cv2
 
     H, W = inv.shape
-    edges = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), *thresholds)
+    edges = cv2.Canny(grey, *thresholds)
     edges = cv2.dilate(edges, np.ones((3, 3), np.uint8))
     count, labels = cv2.connectedComponents((edges == 0).astype(np.uint8), connectivity=4)
     known = (inv > 0) & (labels > 0)  # label 0: the edges, which belong to no segment
@@ -178,7 +184,7 @@ def _segment_planes_once(
     segs, starts, sizes = np.unique(lab, return_index=True, return_counts=True)
     idx = np.repeat(np.arange(segs.size), sizes)  # each known pixel's segment, 0..len(segs)-1
     z = inv[rows, cols].astype(np.float64)
-    u, v = (cols + 0.5 - W / 2) / W, (rows + 0.5 - H / 2) / W  # centred, so the fit is well scaled
+    u, v = _centred(rows, cols, H, W)
     feats = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v, z, u * z, v * z], axis=1)
     weights = np.ones_like(z)
     for step in range(SEGMENT_IRLS_STEPS):  # two reweighted L1 steps, then least squares on the inliers
@@ -213,7 +219,8 @@ def _segment_planes_once(
     lookup[segs] = np.arange(segs.size)
     rows, cols = np.nonzero((lookup[labels] >= 0) & targets)
     k = lookup[labels[rows, cols]]
-    out = plane[k, 0] + plane[k, 1] * ((cols + 0.5 - W / 2) / W) + plane[k, 2] * ((rows + 0.5 - H / 2) / W)
+    u, v = _centred(rows, cols, H, W)
+    out = plane[k, 0] + plane[k, 1] * u + plane[k, 2] * v
     # Within a factor 2 of the inliers' inverse depths: no far extrapolation of a tilted fit.
     ok = (out >= 0.5 * lo[k]) & (out <= 2.0 * hi[k])
     if guard:  # a segment spanning two surfaces must not give the majority's plane to the other
@@ -262,6 +269,8 @@ def segment_planes(
         depth ``[H, W]`` float32 (0 where no region gives one, and off the targets) and ``[H, W]``
         float32 the inlier fraction of the region that gave it (0 where none).
     """
+    import cv2
+
     image = np.asarray(image, dtype=np.float32)
     known = np.asarray(known, dtype=np.float32)
     if image.ndim == 3 and image.shape[0] == 3:
@@ -274,7 +283,7 @@ def segment_planes(
         raise ValueError(
             f"min_pixels must be >= 3 and min_inliers in [0, 1], got {min_pixels} and {min_inliers}"
         )
-    grey = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    grey = cv2.GaussianBlur(np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8), (3, 3), 0)
     known = np.where(np.isfinite(known) & (known > 0), known, 0.0)
     inv = np.where(known > 0, 1.0 / np.maximum(known, 1e-12), 0.0)
     depth = np.zeros(known.shape, np.float64)

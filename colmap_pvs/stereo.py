@@ -1069,10 +1069,10 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
         timings["segments"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = complete_depth(known, photo)
-    if segmented.any():
+    if cfg.geom_fill_segments:
         depth = np.where(segmented, plane, depth).astype(np.float32)
-    conf = completed_confidence(kept, splatted & ~segmented, geo_conf, photo_conf,
-                                support / max(1, len(srcs)), segmented, inliers)
+    conf = completed_confidence(kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)),
+                                segmented, inliers)
     timings["fit"] = time.perf_counter() - t0
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
              "splatted_fraction": float((splatted & ~segmented).mean()),
