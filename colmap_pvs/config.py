@@ -18,6 +18,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 import os
 import socket
 import tempfile
@@ -57,6 +58,16 @@ def check_range(
             b for b in (f">= {low}" if low is not None else "", f"<= {high}" if high is not None else "") if b
         )
         raise ConfigError(f"{name} must be a finite number{' ' + bounds if bounds else ''}, got {value!r}")
+
+
+def check_int_fields(cfg: Any) -> None:
+    """Raise :class:`ConfigError` naming the field unless every field of the dataclass ``cfg``
+    annotated ``int`` holds an integer (not a bool): a ``float`` passed in Python code is refused
+    like the same value on the command line or in a config file."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.type in (int, "int") and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+            raise ConfigError(f"{f.name} must be an integer, got {value!r}")
 
 
 def _unwrap_optional(tp: Any) -> tuple[Any, bool]:

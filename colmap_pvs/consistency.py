@@ -51,6 +51,9 @@ class ConsistencyResult:
         reproj_error: ``[S, H, W]`` float32 pixels (``inf`` where not measurable).
         depth_error: ``[S, H, W]`` float32 relative depth error (``inf`` where not measurable).
         reprojected_depth: ``[S, H, W]`` float32 the source's depth seen from the reference (0 = none).
+        parallax: ``[S, H, W]`` float32 how far (pixels) the pixel's projection into source ``s``
+            moves when its depth grows by :data:`PARALLAX_STEP` (0 where it does not project in
+            front of the source): how much an agreement with that source says about the depth.
     """
 
     agree: np.ndarray
@@ -58,6 +61,7 @@ class ConsistencyResult:
     reproj_error: np.ndarray
     depth_error: np.ndarray
     reprojected_depth: np.ndarray
+    parallax: np.ndarray
 
     @property
     def count(self) -> np.ndarray:
@@ -68,6 +72,11 @@ class ConsistencyResult:
         """``[H, W]`` mean of the reference depth and the agreeing sources' reprojected depths."""
         num = ref_depth + np.where(self.agree, self.reprojected_depth, 0.0).sum(0)
         return (num / (1.0 + self.count)).astype(np.float32)
+
+
+#: Relative depth step of :attr:`ConsistencyResult.parallax` (the geometric pass's default
+#: ``geom_max_depth_error``).
+PARALLAX_STEP = 0.03
 
 
 def _mul(X: np.ndarray, M: np.ndarray) -> np.ndarray:
@@ -116,6 +125,7 @@ def check_consistency(
     reproj = np.full(shape, np.inf, np.float32)
     derr = np.full(shape, np.inf, np.float32)
     zrep = np.zeros(shape, np.float32)
+    parallax = np.zeros(shape, np.float32)
     cos_max = np.cos(np.deg2rad(max_normal_error))
     use_normals = max_normal_error < 180.0 and ref_normals is not None
     if use_normals:
@@ -132,6 +142,11 @@ def check_consistency(
             us, vs = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
         hs, ws_ = src.depth.shape
         ok = (z > 0) & np.isfinite(us) & np.isfinite(vs)
+        Xf = Xs + PARALLAX_STEP * _mul(X, R)  # the same pixel at depth (1 + step) d
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uvw = _mul(Xf, np.asarray(src.K, np.float64))
+            moved = np.hypot(uvw[:, 0] / uvw[:, 2] - us, uvw[:, 1] / uvw[:, 2] - vs)
+        parallax[s][valid] = np.where(ok & (Xf[:, 2] > 0) & np.isfinite(moved), moved, 0.0)
         col = np.floor(np.where(ok, us, -1)).astype(np.int64)
         row = np.floor(np.where(ok, vs, -1)).astype(np.int64)
         ok &= (col >= 0) & (col < ws_) & (row >= 0) & (row < hs)
@@ -161,4 +176,4 @@ def check_consistency(
         reproj[s][valid] = err
         derr[s][valid] = rel
         zrep[s][valid] = np.where(ok, Xb[:, 2], 0.0)
-    return ConsistencyResult(agree, checked, reproj, derr, zrep)
+    return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax)

@@ -78,10 +78,13 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 5, "filled": 2}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 6, "filled": 2}
 Stage = Literal["photometric", "geometric", "filled"]
 #: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
 GEOM_DEVIATION_SCALE = 0.02
+#: Parallax (pixels per ``consistency.PARALLAX_STEP`` of depth) from which an agreeing source counts fully
+#: in the geometric confidence; one with less counts in proportion.
+GEOM_FULL_PARALLAX = 1.0
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
@@ -234,7 +237,8 @@ class StereoConfig:
         default=10,
         metadata={
             "help": "geometric pass: check against up to this many sources with photometric maps: the "
-            "network's sources, then the next best by view score (0: the network's sources only)"
+            "network's sources, then the next best by view score (0: the network's sources only; a "
+            "network source that shares no sparse point with the reference takes no slot)"
         },
     )
     geom_average_depth: bool = field(
@@ -274,8 +278,9 @@ class StereoConfig:
     )
 
     def __post_init__(self) -> None:  # bad values are refused where they enter (issue 11)
-        from .config import check_range
+        from .config import check_int_fields, check_range
 
+        check_int_fields(self)
         check_range("num_views", self.num_views, low=2)
         check_range("geom_fill_min_sources", self.geom_fill_min_sources, low=1)
         check_range("geom_fill_segment_min_pixels", self.geom_fill_segment_min_pixels, low=3)
@@ -850,21 +855,29 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
 
 
 def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
-                         deviation: np.ndarray | None = None) -> np.ndarray:
+                         deviation: np.ndarray | None = None,
+                         parallax: np.ndarray | None = None) -> np.ndarray:
     """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
 
-    ``c = exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * agree_s / S``: the fraction of the ``S``
-    sources that confirm the pixel, each weighted by the network's learned visibility ``v_s`` of that
-    source at the pixel (``agree`` ``[S, H, W]``, ``visibility`` ``[S, H, W]`` or ``None`` for all
-    ones), times a factor for how far the pixel stands off the local plane of the kept pixels around
-    it (``deviation`` ``e`` ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0).
-    Chosen by measurement on hololens-dev (``benchmarks/RESULTS.md``): the weighted fraction ranks
-    errors better than the network's probability mass (which does not rank the consistent pixels at
-    all), the agreement count alone, or the reprojection and depth errors; the deviation factor
-    ranks them better still.
+    ``c = exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * min(1, p_s / GEOM_FULL_PARALLAX) * agree_s / S``:
+    the fraction of the ``S`` sources that confirm the pixel, each weighted by the network's learned
+    visibility ``v_s`` of that source at the pixel (``agree`` ``[S, H, W]``, ``visibility``
+    ``[S, H, W]`` or ``None`` for all ones) and by its parallax ``p_s`` (``[S, H, W]`` pixels,
+    :attr:`~colmap_pvs.consistency.ConsistencyResult.parallax`; ``None``: full), times a factor for
+    how far the pixel stands off the local plane of the kept pixels around it (``deviation`` ``e``
+    ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0). A source with little
+    parallax agrees with almost any depth, so its agreement says less. Chosen by measurement on
+    hololens-dev (``benchmarks/RESULTS.md``): the weighted fraction ranks errors better than the
+    network's probability mass (which does not rank the consistent pixels at all), the agreement
+    count alone, or the reprojection and depth errors; the deviation factor and the parallax weight
+    rank them better still.
     """
     S = max(agree.shape[0], 1)
     weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
+    if parallax is not None:
+        if parallax.shape != agree.shape:
+            raise ShapeError(f"parallax must be {agree.shape}, got {parallax.shape}")
+        weighted = weighted * np.clip(np.nan_to_num(parallax) / GEOM_FULL_PARALLAX, 0.0, 1.0)
     conf = weighted.sum(0) / S
     if deviation is not None:
         if deviation.shape != conf.shape:
@@ -907,12 +920,17 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     sources = [s for s in prov.get("sources", []) if has_maps(s)]
     missing = [s for s in prov.get("sources", []) if s not in sources]
     entry = ctx.selection.references.get(name)
-    if cfg.geom_num_sources > len(sources) and entry is not None:  # the next best views with maps
+    if cfg.geom_num_sources > 0 and entry is not None:  # the next best views with maps
+        # A network source that shares no sparse points with the reference (not a candidate view:
+        # an unrelated frame in patch-match.cfg) is still checked but takes none of the slots.
+        candidates = set(entry.ranked_names)
+        counted = sum(s in candidates for s in sources)
         for s in entry.ranked_names:
-            if len(sources) >= cfg.geom_num_sources:
+            if counted >= cfg.geom_num_sources:
                 break
             if s not in sources and s != name and has_maps(s):
                 sources.append(s)
+                counted += 1
     settings = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
     settings.update(
         reference=prov["fingerprint"],
@@ -953,7 +971,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     timings["consistency"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = np.where(keep, depth, 0.0).astype(np.float32)
-    conf = geometric_confidence(res.agree, vis, plane_deviation(depth))
+    conf = geometric_confidence(res.agree, vis, plane_deviation(depth), res.parallax)
     keep &= conf >= cfg.geom_min_confidence
     depth[~keep] = 0.0
     conf = np.where(keep, conf, 0.0).astype(np.float32)

@@ -292,7 +292,7 @@ def test_plane_deviation_is_small_on_a_plane_and_large_off_it():
         plane_deviation(np.zeros((2, 8, 8), np.float32))
 
 
-def test_geometric_confidence_ranks_off_plane_pixels_lower():
+def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     """Same agreement, more deviation from the local plane: lower confidence; no deviation: the
     visibility-weighted fraction of agreeing sources."""
     from colmap_pvs.stereo import GEOM_DEVIATION_SCALE, geometric_confidence
@@ -311,6 +311,17 @@ def test_geometric_confidence_ranks_off_plane_pixels_lower():
     np.testing.assert_allclose(conf[0, 0], 0.6, rtol=1e-6)
     with pytest.raises(ShapeError):
         geometric_confidence(agree, vis, np.zeros((3, 3), np.float32))
+    # An agreeing source with less parallax than GEOM_FULL_PARALLAX counts in proportion.
+    from colmap_pvs.stereo import GEOM_FULL_PARALLAX
+
+    parallax = np.full((4, 2, 3), 5.0 * GEOM_FULL_PARALLAX, np.float32)
+    np.testing.assert_allclose(geometric_confidence(agree, vis, None, parallax), base, rtol=1e-6)
+    parallax[0, 0, 0] = 0.5 * GEOM_FULL_PARALLAX
+    parallax[1, 0, 0] = 0.0
+    weaker = geometric_confidence(agree, vis, None, parallax)
+    np.testing.assert_allclose(weaker[0, 0], 0.8 * 1.5 / 4, rtol=1e-5)
+    with pytest.raises(ShapeError):
+        geometric_confidence(agree, vis, None, parallax[:2])
 
 
 def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):

@@ -85,6 +85,17 @@ def test_cli_flags_come_from_the_dataclass():
         parser.parse_args([])
 
 
+def test_stereo_config_built_in_python_refuses_a_float_for_an_int_field():
+    from colmap_pvs.stereo import StereoConfig
+
+    cfg = StereoConfig(workspace_path=Path("w"), geom_fill_segment_min_pixels=40)
+    assert cfg.geom_fill_segment_min_pixels == 40
+    bad = (("geom_fill_segment_min_pixels", 30.0), ("geom_fill_min_sources", 2.0), ("num_views", True))
+    for key, value in bad:
+        with pytest.raises(ConfigError, match=f"{key} must be an integer"):
+            StereoConfig(workspace_path=Path("w"), **{key: value})
+
+
 @dataclass(frozen=True)
 class Pair:
     lim: tuple[float, int] = (1.0, 2)

@@ -45,6 +45,34 @@ def test_exact_maps_agree_and_wrong_depths_do_not(exact):
     np.testing.assert_array_equal(res_bad.count[~block], res.count[~block])
 
 
+def test_parallax_is_how_far_a_depth_step_moves_the_projection(exact):
+    """``parallax`` is the source-image distance between the projections of the pixel at depth ``d``
+    and ``(1 + PARALLAX_STEP) d`` (computed here independently); a source at the reference's own
+    centre has none."""
+    from colmap_pvs.consistency import PARALLAX_STEP
+
+    ref, src = exact[0], exact[1]
+    same_centre = SourceMaps(ref.depth, ref.normals, ref.K, ref.cam_from_world)
+    res = _check(ref, [src, same_centre])
+    rows, cols = np.nonzero(ref.depth > 0)
+    rows, cols = rows[::97], cols[::97]
+    T_ref, T_src = np.eye(4), np.eye(4)
+    T_ref[:3], T_src[:3] = ref.cam_from_world[:3], src.cam_from_world[:3]
+    M = T_src @ np.linalg.inv(T_ref)
+
+    def project(scale):
+        d = ref.depth[rows, cols].astype(np.float64) * scale
+        X = np.linalg.inv(ref.K) @ np.stack([(cols + 0.5) * d, (rows + 0.5) * d, d])
+        x = src.K @ (M[:3, :3] @ X + M[:3, 3:])
+        return x[:2] / x[2]
+
+    expected = np.linalg.norm(project(1.0 + PARALLAX_STEP) - project(1.0), axis=0)
+    np.testing.assert_allclose(res.parallax[0][rows, cols], expected, rtol=1e-4, atol=1e-4)
+    assert expected.min() > 0.5  # the scene's sources see real parallax
+    assert np.abs(res.parallax[1]).max() < 1e-6
+    assert not res.parallax[:, ref.depth <= 0].any()
+
+
 def test_learned_visibility_chooses_the_views_checked(exact):
     ref, srcs = exact[0], exact[1:]
     H, W = ref.depth.shape

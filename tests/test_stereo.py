@@ -111,6 +111,36 @@ def test_patch_match_cfg_explicit_sources_are_used(synthetic_ws, tmp_path, tiny_
     assert len(res.sources[names[2]]) == 1
 
 
+def test_geometric_check_slots_skip_unrelated_network_sources(synthetic_ws, tmp_path, tiny_checkpoint):
+    """A network source that is not one of the reference's candidate views (no shared sparse points,
+    as an unrelated frame in patch-match.cfg) is still checked but takes none of the
+    ``geom_num_sources`` slots: the next best view by score is checked too."""
+    ws = _copy(synthetic_ws, tmp_path)
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    ref = names[0]
+    sources = {n: [m for m in names if m != n][:2] for n in names}
+    write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48, num_views=3,
+                       geom_num_sources=2, geom_fill=False)
+    run_stereo(cfg)
+    provenance = ws / "stereo" / "provenance"
+    network_sources = json.loads((provenance / f"{ref}.photometric.json").read_text())["sources"]
+    geo_prov = provenance / f"{ref}.geometric.json"
+    assert json.loads(geo_prov.read_text())["sources"] == network_sources  # both related: slots full
+    ctx = stereo_module.prepare_stereo(cfg)
+    entry = ctx.selection.references[ref]
+    unrelated = network_sources[1]
+    keep = [i for i, s in enumerate(entry.ranked_names) if s != unrelated]
+    ranked = tuple(entry.ranked_names[i] for i in keep)
+    ctx.selection.references[ref] = dataclasses.replace(entry, ranked_names=ranked,
+                                                        ranked_scores=entry.ranked_scores[keep])
+    next_best = next(s for s in ctx.selection.references[ref].ranked_names if s not in network_sources)
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    assert json.loads(geo_prov.read_text())["sources"] == [*network_sources, next_best]
+
+
 def test_image_without_points_is_skipped_not_fatal(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
     ws = _copy(synthetic_ws, tmp_path)
     model = read_sparse_model(ws / "sparse")
