@@ -33,6 +33,7 @@ import torch
 
 from .consistency import SourceMaps
 from .errors import ShapeError
+from .geometry import affine_row
 from .model.cost import affine_fill_inverse_depth
 from .upsampling import resize_bilinear
 
@@ -324,20 +325,22 @@ def splat_depths(
         if not rows.size:
             continue
         d = src.depth[rows, cols].astype(np.float64)
-        # Source pixel centre (our convention) with depth d, into the reference: x ~ A [u d, v d, d] + b.
+        # Source pixel centre (our convention) with depth d, into the reference: x ~ A [u d, v d, d] + b
+        # (row by row, geometry.affine_row).
         ref_from_src = cam_from_world @ np.linalg.inv(src.cam_from_world)
         A = K @ ref_from_src[:3, :3] @ np.linalg.inv(src.K)
         b = K @ ref_from_src[:3, 3]
-        pts = np.stack([(cols + 0.5) * d, (rows + 0.5) * d, d])
-        x = A @ pts + b[:, None]
-        z = x[2]
+        pts = ((cols + 0.5) * d, (rows + 0.5) * d, d)
+        z = affine_row(A[2], b[2], pts)
         front = z > 1e-9
-        u = np.floor(x[0, front] / z[front])
-        v = np.floor(x[1, front] / z[front])
+        z = z[front]
+        pts = tuple(c[front] for c in pts)
+        u = np.floor(affine_row(A[0], b[0], pts) / z)
+        v = np.floor(affine_row(A[1], b[1], pts) / z)
         inside = (u >= 0) & (v >= 0) & (u < W) & (v < H)
         index = (v[inside] * W + u[inside]).astype(np.int64)
         zbuf = np.full(H * W, np.inf)
-        np.minimum.at(zbuf, index, z[front][inside])
+        np.minimum.at(zbuf, index, z[inside])
         stack[k] = np.where(np.isfinite(zbuf), zbuf, 0.0).reshape(H, W)
     reached = stack > 0
     count = reached.sum(0)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ShapeError
-from .geometry import pixel_centers
+from .geometry import affine_row, pixel_centers
 
 
 @dataclass
@@ -117,8 +117,9 @@ def check_consistency(
     u, v = pixel_centers(H, W)
     valid = ref_depth > 0
     u, v, d = u[valid], v[valid], ref_depth[valid].astype(np.float64)
-    Kinv_ref = np.linalg.inv(np.asarray(K, np.float64))
-    X = _mul(np.stack([u * d, v * d, d], axis=1), Kinv_ref)  # [P, 3] reference camera frame
+    K_ref = np.asarray(K, np.float64)
+    Kinv_ref = np.linalg.inv(K_ref)
+    q = (u * d, v * d, d)  # the pixel with depth d: X = Kinv_ref q in the reference camera frame
     shape = (S, H, W)
     agree = np.zeros(shape, bool)
     checked = np.zeros(shape, bool)
@@ -135,33 +136,39 @@ def check_consistency(
         T_src[:3] = np.asarray(src.cam_from_world, np.float64)[:3]
         T_rel = T_src @ np.linalg.inv(T_ref)  # ref camera -> source camera
         R, t = T_rel[:3, :3], T_rel[:3, 3]
-        Xs = _mul(X, R) + t
-        z = Xs[:, 2]
+        K_src = np.asarray(src.K, np.float64)
+        # Each direction is one affine map of the homogeneous pixel (rows computed one at a time):
+        # source camera X_s = R Kinv_ref q + t, its pixel K_src X_s.
+        to_cam = R @ Kinv_ref
+        z = affine_row(to_cam[2], t[2], q)
+        a = K_src @ t
+        ux, uy, uw = (affine_row(r, b, q) for r, b in zip(K_src @ to_cam, a, strict=True))
         with np.errstate(divide="ignore", invalid="ignore"):
-            uvw = _mul(Xs, np.asarray(src.K, np.float64))
-            us, vs = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+            us, vs = ux / uw, uy / uw
+            # The same pixel at depth (1 + step) d: K_src ((1 + step) R X + t).
+            fx, fy, fw = ((1 + PARALLAX_STEP) * c - PARALLAX_STEP * b
+                          for c, b in zip((ux, uy, uw), a, strict=True))
+            moved = np.hypot(fx / fw - us, fy / fw - vs)
         hs, ws_ = src.depth.shape
         ok = (z > 0) & np.isfinite(us) & np.isfinite(vs)
-        Xf = Xs + PARALLAX_STEP * _mul(X, R)  # the same pixel at depth (1 + step) d
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uvw = _mul(Xf, np.asarray(src.K, np.float64))
-            moved = np.hypot(uvw[:, 0] / uvw[:, 2] - us, uvw[:, 1] / uvw[:, 2] - vs)
-        parallax[s][valid] = np.where(ok & (Xf[:, 2] > 0) & np.isfinite(moved), moved, 0.0)
+        far_z = (1 + PARALLAX_STEP) * (z - t[2]) + t[2]
+        parallax[s][valid] = np.where(ok & (far_z > 0) & np.isfinite(moved), moved, 0.0)
         col = np.floor(np.where(ok, us, -1)).astype(np.int64)
         row = np.floor(np.where(ok, vs, -1)).astype(np.int64)
         ok &= (col >= 0) & (col < ws_) & (row >= 0) & (row < hs)
         col, row = np.where(ok, col, 0), np.where(ok, row, 0)
         ds = np.where(ok, src.depth[row, col], 0.0).astype(np.float64)
         ok &= ds > 0
-        # Back-project the source pixel's centre with its own depth and bring it home.
-        Kinv = np.linalg.inv(np.asarray(src.K, np.float64))
-        rays = _mul(np.stack([(col + 0.5) * ds, (row + 0.5) * ds, ds], -1), Kinv)
-        Xb = _mul(rays - t, R.T)  # R^T (x - t)
+        # Back-project the source pixel's centre with its own depth and bring it home:
+        # X_b = R^T (Kinv_src r - t), its pixel K_ref X_b.
+        r = ((col + 0.5) * ds, (row + 0.5) * ds, ds)
+        back = R.T @ np.linalg.inv(K_src)
+        off = -R.T @ t
+        zb = affine_row(back[2], off[2], r)
+        bx, by, bw = (affine_row(m, b, r) for m, b in zip(K_ref @ back, K_ref @ off, strict=True))
         with np.errstate(divide="ignore", invalid="ignore"):
-            uvw = _mul(Xb, np.asarray(K, np.float64))
-            ub, vb = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
-            err = np.hypot(ub - u, vb - v)
-            rel = np.abs(Xb[:, 2] - d) / d
+            err = np.hypot(bx / bw - u, by / bw - v)
+            rel = np.abs(zb - d) / d
         err = np.where(ok & np.isfinite(err), err, np.inf)
         rel = np.where(ok & np.isfinite(rel), rel, np.inf)
         good = ok & (err <= max_reproj_error) & (rel <= max_depth_error)
@@ -175,5 +182,5 @@ def check_consistency(
         agree[s][valid] = good & vis_ok
         reproj[s][valid] = err
         derr[s][valid] = rel
-        zrep[s][valid] = np.where(ok, Xb[:, 2], 0.0)
+        zrep[s][valid] = np.where(ok, zb, 0.0)
     return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax)

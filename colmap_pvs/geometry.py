@@ -15,6 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 
+def affine_row(m: np.ndarray, b: float, x: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """``m . x + b`` for one row ``m`` ``[3]`` of an affine map and the components ``x`` of ``[P]``
+    points: an affine map of many points one output row at a time, without BLAS (whose threads stall
+    on thin matrices when the cores are busy: 4x slower alone, 40x on a loaded machine)."""
+    return m[0] * x[0] + m[1] * x[1] + m[2] * x[2] + b
+
+
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """``K`` of an image resized by ``(sx, sy)`` (new size = old size * s), exact for our pixel convention."""
     S = np.diag([sx, sy, 1.0])

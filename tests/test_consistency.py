@@ -92,3 +92,12 @@ def test_normal_angle_test_rejects_flipped_source_normals(exact):
     assert _check(ref, tilted, max_normal_error=180.0).count.sum() == _check(ref, srcs).count.sum()
     assert _check(ref, tilted, max_normal_error=30.0).count.sum() == 0
     assert _check(ref, srcs, max_normal_error=30.0).count.sum() > 0.9 * _check(ref, srcs).count.sum()
+
+
+def test_affine_row_is_one_row_of_the_affine_map():
+    from colmap_pvs.geometry import affine_row
+
+    rng = np.random.default_rng(0)
+    M, b, X = rng.normal(size=(3, 3)), rng.normal(size=3), rng.normal(size=(3, 50))
+    rows = np.stack([affine_row(M[i], b[i], tuple(X)) for i in range(3)])
+    np.testing.assert_allclose(rows, M @ X + b[:, None], rtol=1e-12, atol=1e-12)
