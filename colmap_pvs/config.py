@@ -62,8 +62,9 @@ def check_range(
 
 def check_int_fields(cfg: Any) -> None:
     """Raise :class:`ConfigError` naming the field unless every field of the dataclass ``cfg``
-    annotated ``int`` holds an integer (not a bool): a ``float`` passed in Python code is refused
-    like the same value on the command line or in a config file."""
+    annotated ``int`` holds an integer (not a bool). A ``float`` passed in Python code is refused;
+    flags and config files go through :func:`config_from_dict`, which turns a whole-number value
+    (``"30"``, ``30.0``) into an ``int`` and refuses others."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         if f.type in (int, "int") and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):

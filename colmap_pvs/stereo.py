@@ -238,7 +238,7 @@ class StereoConfig:
         metadata={
             "help": "geometric pass: check against up to this many sources with photometric maps: the "
             "network's sources, then the next best by view score (0: the network's sources only; a "
-            "network source that shares no sparse point with the reference takes no slot)"
+            "network source that is not a candidate view of the reference takes no slot)"
         },
     )
     geom_average_depth: bool = field(
@@ -921,8 +921,9 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     missing = [s for s in prov.get("sources", []) if s not in sources]
     entry = ctx.selection.references.get(name)
     if cfg.geom_num_sources > 0 and entry is not None:  # the next best views with maps
-        # A network source that shares no sparse points with the reference (not a candidate view:
-        # an unrelated frame in patch-match.cfg) is still checked but takes none of the slots.
+        # A network source that is not a candidate view of the reference (score 0 or fewer than
+        # min_shared_points shared sparse points: an unrelated frame in patch-match.cfg) is still
+        # checked but takes none of the slots.
         candidates = set(entry.ranked_names)
         counted = sum(s in candidates for s in sources)
         for s in entry.ranked_names:

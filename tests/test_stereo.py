@@ -294,7 +294,7 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     assert sorted(res.processed) == names
 
 
-def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, tiny_checkpoint):
+def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, tiny_checkpoint, monkeypatch):
     """Exact photometric maps with one corrupted block: the geometric pass keeps the rest and drops it."""
     from colmap_pvs.io.maps import write_depth_map, write_normal_map
 
@@ -329,6 +329,19 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
     assert np.all(conf[~ok] == 0) and conf[ok].min() > 0
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    # The confidence weighs each agreeing source by its parallax: asking for far more parallax than
+    # any source has scales it down (same kept pixels); then the shipped value again.
+    strict = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True, overwrite=True))
+    monkeypatch.setattr(stereo_module, "GEOM_FULL_PARALLAX", 1e4)
+    assert stereo_module.process_reference(strict, ref, "geometric").status == "computed"
+    strict.flush()
+    weak = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    assert np.array_equal(weak > 0, ok) and weak[ok].max() < 0.01 * conf[ok].max()
+    monkeypatch.undo()
+    assert stereo_module.process_reference(strict, ref, "geometric").status == "computed"
+    strict.close()
+    again = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    np.testing.assert_array_equal(again, conf)
     # The dense completion, from the reference's own kept pixels only (no other geometric map yet):
     # the kept pixels as they are, the dropped block filled by the plane fit from around it (the
     # block spans the box's edge, so the fit is not exact there), closer to the truth than the
