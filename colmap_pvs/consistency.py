@@ -79,13 +79,6 @@ class ConsistencyResult:
 PARALLAX_STEP = 0.03
 
 
-def _mul(X: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """``X @ M.T`` for ``X`` ``[P, 3]`` and ``M`` ``[3, 3]`` without BLAS (whose threads stall on
-    thin matrices when the cores are busy: 4x slower alone, 40x on a loaded machine)."""
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    return np.stack([M[i, 0] * x + M[i, 1] * y + M[i, 2] * z for i in range(3)], axis=1)
-
-
 def check_consistency(
     ref_depth: np.ndarray,
     ref_normals: np.ndarray | None,
@@ -173,7 +166,8 @@ def check_consistency(
         rel = np.where(ok & np.isfinite(rel), rel, np.inf)
         good = ok & (err <= max_reproj_error) & (rel <= max_depth_error)
         if use_normals and src.normals is not None:
-            ns = _mul(np.asarray(src.normals, np.float64)[row, col], R.T)  # into the reference frame
+            n_src = tuple(np.asarray(src.normals, np.float64)[row, col].T)
+            ns = np.stack([affine_row(m, 0.0, n_src) for m in R.T], -1)  # into the reference frame
             cos = np.sum(ns * n_ref, -1)
             has = (np.abs(ns).sum(-1) > 0) & (np.abs(n_ref).sum(-1) > 0)
             good &= ~has | (cos >= cos_max)
