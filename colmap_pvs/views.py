@@ -97,6 +97,18 @@ class ViewSelectionConfig:
             "counting decay^k (1: the plain top-N by score; 0: only points no picked source sees)"
         },
     )
+    wide_sources: int = field(
+        default=0,
+        metadata={
+            "help": "of the num_views-1 sources, this many (at most half, rounded down) are picked by the "
+            "MVSNet score at wide_theta0_deg instead of theta0_deg: wider baselines make the geometric "
+            "maps more accurate but sparser (e.g. 2 at N = 5; 0: off)"
+        },
+    )
+    wide_theta0_deg: float = field(
+        default=15.0,
+        metadata={"help": "preferred triangulation angle (degrees) of the wide_sources picks"},
+    )
     min_shared_points: int = field(
         default=3,
         metadata={"help": "a source must share at least this many sparse points with the reference"},
@@ -157,6 +169,10 @@ class ViewSelectionConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a positive number, got {value}")
+        if not 0.0 <= self.wide_theta0_deg <= 180.0:
+            raise ConfigError(f"wide_theta0_deg must be in [0, 180], got {self.wide_theta0_deg}")
+        if self.wide_sources < 0:
+            raise ConfigError(f"wide_sources must be >= 0, got {self.wide_sources}")
         if not 0.0 <= self.coverage_decay <= 1.0:
             raise ConfigError(f"coverage_decay must be in [0, 1], got {self.coverage_decay}")
         if self.min_shared_points < 1:
@@ -310,6 +326,7 @@ def coverage_order(
     count: int,
     config: ViewSelectionConfig,
     *,
+    theta0_deg: float | None = None,
     _by_image: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The first ``count`` of ``candidates`` in coverage-aware order (greedy, best first).
@@ -319,6 +336,8 @@ def coverage_order(
     the picks so far that observe ``p`` (``decay = config.coverage_decay``). The first pick is the
     best by MVSNet score; later picks prefer views of the parts of the reference the picked views
     miss. Ties go to the earlier candidate. ``decay = 1`` returns ``candidates[:count]``.
+    ``theta0_deg`` (default: ``config.theta0_deg``) replaces the score's preferred angle; then
+    ``candidates`` need not be in that score's order (``decay = 1``: the top ``count`` by it).
 
     Args:
         obs: the model's observations; ``reference`` and ``candidates`` ``[k]`` index its images.
@@ -329,8 +348,9 @@ def coverage_order(
     """
     candidates = np.asarray(candidates, dtype=np.int64)
     count = min(int(count), candidates.shape[0])
-    if config.coverage_decay >= 1.0 or count <= 1:
-        return candidates[:count]
+    if theta0_deg is None and (config.coverage_decay >= 1.0 or count <= 1):
+        return candidates[:count]  # already in the order of the config's own score
+    theta0 = config.theta0_deg if theta0_deg is None else theta0_deg
     if _by_image is None:
         _by_image = _group_by_image(obs)
     order, image_offsets = _by_image
@@ -347,7 +367,7 @@ def coverage_order(
     other, mine, local = other[keep], mine[keep], local[keep]
     cos = np.einsum("ij,ij->i", obs.rays[mine], obs.rays[other])
     sin = np.linalg.norm(np.cross(obs.rays[mine], obs.rays[other]), axis=1)
-    g = angle_weight(np.degrees(np.arctan2(sin, cos)), config.theta0_deg, config.sigma1, config.sigma2)
+    g = angle_weight(np.degrees(np.arctan2(sin, cos)), theta0, config.sigma1, config.sigma2)
     slot = np.full(obs.num_images, -1, dtype=np.int64)
     slot[candidates] = np.arange(candidates.shape[0])
     cand = slot[obs.image[other]]
@@ -728,7 +748,9 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
     """
     config = config or ViewSelectionConfig()
     stats, obs = _pair_statistics(model, config)
-    by_image = _group_by_image(obs) if obs is not None and config.coverage_decay < 1.0 else None
+    wide = min(config.wide_sources, (config.num_views - 1) // 2)
+    by_image = (_group_by_image(obs) if obs is not None and (config.coverage_decay < 1.0 or wide > 0)
+                else None)
     names = tuple(model.images[int(i)].name for i in stats.image_ids)
     order = np.argsort(np.asarray(model.points.ids, dtype=np.int64), kind="stable")
     n_sources = config.num_views - 1
@@ -761,10 +783,18 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
                 ranked.shape[0],
                 n_sources,
             )
-        if by_image is not None:  # coverage-aware order of the first picks (the geometric pass: 10)
+        if by_image is not None and config.coverage_decay < 1.0:
+            # coverage-aware order of the first picks (the geometric pass: 10)
             picks = max(n_sources, _COVERAGE_PICKS)
             first = coverage_order(obs, k, ranked, picks, config, _by_image=by_image)
             ranked = np.concatenate([first, ranked[~np.isin(ranked, first)]])
+        if by_image is not None and wide > 0 and ranked.shape[0] > n_sources - wide:
+            # the last `wide` sources: the best of the rest by the score at wide_theta0_deg
+            near = ranked[: n_sources - wide]
+            rest = ranked[n_sources - wide :]
+            far = coverage_order(obs, k, rest, wide, config, theta0_deg=config.wide_theta0_deg,
+                                 _by_image=by_image)
+            ranked = np.concatenate([near, far, rest[~np.isin(rest, far)]])
         ranked_names = tuple(names[j] for j in ranked)
         ranked_scores = row[ranked]
         depth_range, note = _robust_depth_range(depths, config, repr(image.name))

@@ -288,7 +288,8 @@ def test_no_candidate_source_is_skipped(caplog):
 
 def test_select_views_top_k_and_min_shared():
     model = ring_model(7, n_images=8, n_points=400)
-    cfg = ViewSelectionConfig(num_views=4, min_shared_points=3, min_points=5, coverage_decay=1.0)
+    cfg = ViewSelectionConfig(num_views=4, min_shared_points=3, min_points=5, coverage_decay=1.0,
+                              wide_sources=0)
     sel = select_views(model, cfg)
     assert not sel.skipped
     for k, name in enumerate(sel.names):
@@ -440,8 +441,10 @@ def two_cluster_model() -> SparseModel:
 
 def test_coverage_order_prefers_views_of_uncovered_points():
     model = two_cluster_model()
-    plain = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=1.0))
-    aware = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=0.1))
+    plain = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=1.0,
+                                                   wide_sources=0))
+    aware = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, coverage_decay=0.1,
+                                                   wide_sources=0))
     ref = "img_001.jpg"
     assert plain.references[ref].source_names[1] in ("img_002.jpg", "img_003.jpg")
     # the best by score still comes first; the second covers the right cluster
@@ -455,10 +458,42 @@ def test_coverage_order_prefers_views_of_uncovered_points():
         assert score == pytest.approx(row[aware.index_of(name)])
     # decay 1 is the plain top-N on any model
     ring = ring_model(5, n_images=7, n_points=300)
-    plain_ring = select_views(ring, ViewSelectionConfig(num_views=4, min_points=5, coverage_decay=1.0))
+    plain_ring = select_views(ring, ViewSelectionConfig(num_views=4, min_points=5, coverage_decay=1.0,
+                                                        wide_sources=0))
     for name, entry in plain_ring.references.items():
         order = np.argsort(-np.array([entry.ranked_scores]), kind="stable")[0]
         assert list(order) == list(range(len(order))), name
+
+
+def test_wide_sources_are_picked_by_the_score_at_the_wide_angle():
+    # the reference at 0 degrees on a circle around a small cloud, the others at 3 .. 30 degrees
+    rng = np.random.default_rng(3)
+    angles = [0, 3, 5, 7, 9, 15, 30]
+    rad = np.radians(angles)
+    centers = np.stack([10 * np.cos(rad), 10 * np.sin(rad), np.zeros_like(rad)], axis=1)
+    xyz = 0.05 * rng.standard_normal((40, 3))
+    model = make_model(centers, xyz, [list(range(1, len(angles) + 1))] * len(xyz))
+    name = {a: f"img_{k + 1:03d}.jpg" for k, a in enumerate(angles)}
+    plain = select_views(model, ViewSelectionConfig(num_views=5, min_points=5, wide_sources=0))
+    wide = select_views(model, ViewSelectionConfig(num_views=5, min_points=5, wide_sources=2))  # at 15 deg
+    ref = name[0]
+    # theta0 = 5 alone: the four views nearest 5 degrees (3 degrees scores low: sigma1 = 1 below theta0)
+    assert plain.references[ref].source_names == tuple(name[a] for a in (5, 7, 9, 15))
+    # two by theta0 = 5, then the two best by the score at 15 degrees among the rest
+    assert wide.references[ref].source_names == tuple(name[a] for a in (5, 7, 15, 30))
+    entry = wide.references[ref]
+    assert entry.source_names == entry.ranked_names[:4]
+    assert sorted(entry.ranked_names) == sorted(plain.references[ref].ranked_names)
+    row = wide.score_row(ref)
+    for n, score in zip(entry.ranked_names, entry.ranked_scores, strict=True):
+        assert score == pytest.approx(row[wide.index_of(n)])
+    # at most half of the sources are wide: N = 3 keeps 1 by theta0 and takes 1 wide
+    small = select_views(model, ViewSelectionConfig(num_views=3, min_points=5, wide_sources=5))
+    assert small.references[ref].source_names == (name[5], name[15])
+    with pytest.raises(ConfigError, match="wide_sources"):
+        ViewSelectionConfig(wide_sources=-1)
+    with pytest.raises(ConfigError, match="wide_theta0_deg"):
+        ViewSelectionConfig(wide_theta0_deg=200.0)
 
 
 def test_coverage_decay_validation():
