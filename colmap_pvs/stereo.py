@@ -71,7 +71,7 @@ from .normals import depth_to_normals, fit_normals
 from .prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
 from .types import Image, SparseModel
 from .upsampling import guided_upsample_depth, resize_bilinear
-from .views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
+from .views import WIDE_SOURCES_HELP, ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
 logger = logging.getLogger(__name__)
 
@@ -117,6 +117,7 @@ class StereoConfig:
 
     workspace_path: Path = field(metadata={"help": "COLMAP dense workspace (images/, sparse/, stereo/)"})
     num_views: int = field(default=5, metadata={"help": "views per reference: reference + N-1 sources"})
+    wide_sources: int = field(default=0, metadata={"help": WIDE_SOURCES_HELP})
     max_image_size: int = field(
         default=640, metadata={"help": "longest image side for inference; <= 0 keeps full size"}
     )
@@ -645,7 +646,9 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
     adapt_seconds = 0.0
     if config.adapt_steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
         net, ckpt_path, adapt_seconds = _adapt(config, ws, ckpt_path, device)
-    selection: ViewSelection = select_views(model_sparse, ViewSelectionConfig(num_views=config.num_views))
+    selection: ViewSelection = select_views(
+        model_sparse, ViewSelectionConfig(num_views=config.num_views, wide_sources=config.wide_sources)
+    )
     refs = choose_references(ws, model_sparse)
     return StereoContext(
         config=config,

@@ -67,6 +67,14 @@ _COVERAGE_PICKS = 16
 # --------------------------------------------------------------------------- config
 
 
+#: Help of ``wide_sources``, shared by the configs that pass it on (stereo, select-views).
+WIDE_SOURCES_HELP = (
+    "of the num_views-1 sources, this many (at most half, rounded down) are picked by the MVSNet score "
+    "at wide_theta0_deg instead of theta0_deg: wider baselines make the geometric maps more accurate "
+    "but sparser (e.g. 2 at N = 5; 0: off)"
+)
+
+
 @dataclass(frozen=True)
 class ViewSelectionConfig:
     """Parameters of view selection and depth-range estimation."""
@@ -97,14 +105,7 @@ class ViewSelectionConfig:
             "counting decay^k (1: the plain top-N by score; 0: only points no picked source sees)"
         },
     )
-    wide_sources: int = field(
-        default=0,
-        metadata={
-            "help": "of the num_views-1 sources, this many (at most half, rounded down) are picked by the "
-            "MVSNet score at wide_theta0_deg instead of theta0_deg: wider baselines make the geometric "
-            "maps more accurate but sparser (e.g. 2 at N = 5; 0: off)"
-        },
-    )
+    wide_sources: int = field(default=0, metadata={"help": WIDE_SOURCES_HELP})
     wide_theta0_deg: float = field(
         default=15.0,
         metadata={"help": "preferred triangulation angle (degrees) of the wide_sources picks"},
@@ -970,6 +971,7 @@ class SelectViewsConfig:
     write_cfg: bool = field(
         default=True, metadata={"help": "write stereo/patch-match.cfg with the explicit source lists"}
     )
+    wide_sources: int = field(default=0, metadata={"help": WIDE_SOURCES_HELP})
 
 
 def run_select_views(config: SelectViewsConfig) -> ViewSelection:
@@ -981,7 +983,9 @@ def run_select_views(config: SelectViewsConfig) -> ViewSelection:
     from .io.workspace import load_workspace, write_patch_match_cfg
 
     ws, model = load_workspace(config.workspace_path)
-    selection = select_views(model, ViewSelectionConfig(num_views=config.num_views))
+    selection = select_views(
+        model, ViewSelectionConfig(num_views=config.num_views, wide_sources=config.wide_sources)
+    )
     if config.write_cfg:
         write_patch_match_cfg(
             ws.patch_match_cfg, {name: ref.source_names for name, ref in selection.references.items()}

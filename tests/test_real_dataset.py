@@ -18,6 +18,7 @@ from colmap_pvs.train.real_dataset import (
     MixedDataset,
     RealDatasetConfig,
     RealMVSDataset,
+    crop_label_map,
     open_scene,
 )
 from colmap_pvs.train.selfsup import photometric_error
@@ -93,6 +94,55 @@ def test_crops_keep_the_geometry_exact(analytic_scene, tmp_path):
     assert np.median(rel) < 0.03
 
 
+def test_pseudo_labels_are_cropped_at_the_ray_of_each_pixel_centre():
+    """A map pixel ``(col, row)`` holds the ray of continuous ``(col, row)`` (COLMAP's map convention):
+    a ramp map that stores its own column reads back within half a map pixel of each crop pixel's ray."""
+    Wm, Hm = 200, 150
+    ramp = np.tile(np.arange(Wm, dtype=np.float32), (Hm, 1))
+    rows = np.tile(np.arange(Hm, dtype=np.float32)[:, None], (1, Wm))
+    window = (13.3, 7.9, 60.0, 45.0)  # in a 100 x 75 image: the map has twice its resolution
+    out_u = crop_label_map(ramp, (100, 75), window, 64, 48)
+    out_v = crop_label_map(rows, (100, 75), window, 64, 48)
+    u = (window[0] + (np.arange(64) + 0.5) * window[2] / 64) * 2.0
+    v = (window[1] + (np.arange(48) + 0.5) * window[3] / 48) * 2.0
+    assert out_u.shape == (48, 64)
+    assert np.abs(out_u - u[None, :]).max() <= 0.5 + 1e-4
+    assert np.abs(out_v - v[:, None]).max() <= 0.5 + 1e-4
+    # outside the map: the border pixel, never a wrap-around
+    edge = crop_label_map(ramp, (100, 75), (90.0, 0.0, 20.0, 15.0), 16, 12)
+    assert edge.max() == Wm - 1 and edge.min() >= 179
+
+
+def test_pseudo_labels_follow_the_crop_geometry(analytic_scene, tmp_path):
+    """The workspace's geometric maps (here the true depth) come back as the sample's true depth."""
+    ds = _dataset(analytic_scene, tmp_path, pseudo_labels="geometric")
+    assert set(ds.scenes[0].pseudo) == set(ds.scenes[0].references)
+    for i in (0, 3):
+        s = ds[i]
+        K0 = s["intrinsics"][0].double().numpy()
+        pose0 = s["cam_from_world"][0].double().numpy()[:3]
+        truth = render_view(analytic_scene["scene"], K0, pose0, 128, 96)["depth"]
+        pseudo = s["pseudo_depth"].numpy()
+        m = (pseudo > 0) & (truth > 0)
+        assert m.mean() > 0.9
+        assert np.median(np.abs(pseudo[m] - truth[m]) / truth[m]) < 0.005
+    assert float(_dataset(analytic_scene, tmp_path)[0]["pseudo_depth"].abs().sum()) == 0.0
+
+
+def test_pseudo_labels_need_the_maps(analytic_scene, tmp_path):
+    import shutil
+
+    root = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], root)
+    for f in (root / "stereo" / "depth_maps").glob("*.geometric.bin"):
+        f.unlink()
+    with pytest.raises(WorkspaceError, match="no geometric depth map"):
+        cfg = RealDatasetConfig(roots=(root,), pseudo_labels="geometric", **SMALL)
+        RealMVSDataset(cfg, cache_dir=tmp_path)
+    with pytest.raises(ConfigError, match="pseudo_labels"):
+        RealDatasetConfig(roots=(root,), pseudo_labels="photometric")
+
+
 def test_mixed_dataset_ratio_and_keys(analytic_scene, tmp_path):
     real = _dataset(analytic_scene, tmp_path)
 
@@ -108,6 +158,7 @@ def test_mixed_dataset_ratio_and_keys(analytic_scene, tmp_path):
     assert 0.1 < np.mean(kinds) < 0.5
     syn = mixed[kinds.index(False)]
     assert float(syn["is_real"]) == 0.0 and syn["label_depth"].shape == (8, 8)
+    assert syn["pseudo_depth"].shape == (8, 8) and float(syn["pseudo_depth"].abs().sum()) == 0.0
     assert float(mixed[kinds.index(True)]["is_real"]) == 1.0
     with pytest.raises(ConfigError):
         MixedDataset(None, real, 0.5)

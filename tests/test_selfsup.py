@@ -130,3 +130,22 @@ def test_selfsup_loss_on_coarse_outputs_and_gradient(analytic_scene):
 def test_bad_shapes_are_refused():
     with pytest.raises(ShapeError):
         warp_to_reference(torch.rand(2, 3, 8, 8), torch.eye(3)[None], torch.eye(4)[None], torch.ones(1, 8, 8))
+
+
+def test_selfsup_loss_pseudo_term_pins_the_dense_labels(analytic_scene):
+    """The pseudo-label term is zero at the labelled depth, grows away from it, and is off without labels."""
+    images, K, poses, depth = _views(analytic_scene, [0, 1, 2])
+    dmin, dmax = torch.tensor([0.5]), torch.tensor([10.0])
+    no_sparse = torch.zeros_like(depth)
+    cfg = SelfSupConfig(photometric_weight=0.0, smooth_weight=0.0, sparse_weight=0.0, pseudo_weight=2.0)
+    args = (images, K, poses, no_sparse, dmin, dmax, [1.0], [1], cfg)
+    exact = selfsup_loss([depth], *args, pseudo_depth=depth)
+    near = selfsup_loss([depth * 1.05], *args, pseudo_depth=depth)
+    far = selfsup_loss([depth * 1.2], *args, pseudo_depth=depth)
+    assert float(exact.total) == pytest.approx(0.0, abs=1e-6)
+    assert 0.0 < float(near.total) < float(far.total)
+    assert float(far.total) == pytest.approx(2.0 * float(far.pseudo), rel=1e-5)
+    without = selfsup_loss([depth * 1.2], *args)
+    assert without.pseudo is None and float(without.total) == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(ShapeError, match="pseudo_depth"):
+        selfsup_loss([depth], *args, pseudo_depth=depth[:, :-1])

@@ -493,3 +493,32 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
         write(new)
     assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(new), (8, 6))
     assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(old), (8, 6))
+
+
+def test_wide_sources_reach_select_views_and_stereo(analytic_scene, tmp_path, tiny_checkpoint):
+    # select-views --wide_sources and stereo's wide_sources pick the same sources as the view selection
+    # with that setting, which differ from the default's on this scene (N = 3: 1 of the 2 sources wide)
+    from colmap_pvs.io.workspace import read_patch_match_cfg
+    from colmap_pvs.views import ViewSelectionConfig, select_views
+
+    ws = _copy(analytic_scene["root"], tmp_path)
+    _, model = load_workspace(ws)
+    expected = {
+        wide: {name: ref.source_names for name, ref in select_views(
+            model, ViewSelectionConfig(num_views=3, wide_sources=wide)).references.items()}
+        for wide in (0, 1)
+    }
+    assert expected[0] != expected[1]
+    cfg_path = ws / "stereo" / "patch-match.cfg"
+    for wide in (0, 1):
+        assert main(["select-views", "--workspace_path", str(ws), "--num_views", "3",
+                     "--wide_sources", str(wide)]) == 0
+        written = {name: spec.names for name, spec in read_patch_match_cfg(cfg_path).items()}
+        assert written == expected[wide]
+        ctx = stereo_module.prepare_stereo(StereoConfig(
+            workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, wide_sources=wide))
+        try:
+            chosen = {name: ref.source_names for name, ref in ctx.selection.references.items()}
+        finally:
+            ctx.close()
+        assert chosen == expected[wide]

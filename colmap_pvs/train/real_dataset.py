@@ -21,10 +21,16 @@ The reference's SfM points inside the crop are split at random: a fraction ``hin
 becomes the network's ``sparse_depth`` hints, the others become ``label_depth``; a point is
 never both in one sample.
 
+Pseudo-labels (self-training, ``pseudo_labels="geometric"``): each root is then a dense
+workspace on which ``colmap-pvs stereo`` has run, and the reference's geometric map
+(``stereo/depth_maps/NAME.geometric.bin``: depths that at least ``geom_min_consistent``
+sources agree with, 0 elsewhere) is cropped with the reference's window (nearest pixel) into
+``pseudo_depth``. A reference without such a map gets an empty ``pseudo_depth``.
+
 Sample dict (``N = 1 + num_best + num_worst``): ``images``, ``photo_images`` ``[N, 3, H, W]``,
 ``intrinsics`` ``[N, 3, 3]``, ``cam_from_world`` ``[N, 4, 4]``, ``depth`` ``[H, W]`` (all zero:
 no ground truth), ``depth_min``, ``depth_max``, ``sparse_depth`` ``[1, H, W]``, ``label_depth``
-``[H, W]`` and ``is_real`` (1.0).
+``[H, W]``, ``pseudo_depth`` ``[H, W]`` (0 = none) and ``is_real`` (1.0).
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from torch.utils.data import Dataset
 from ..errors import ConfigError, WorkspaceError
 from ..geometry import sparse_depth_map, to_homogeneous
 from ..io.images import load_image, resize_image
+from ..io.maps import read_depth_map
 from ..io.sparse import read_sparse_model
 from ..io.workspace import UndistortConfig, detect_workspace, undistort
 from ..model.config import NETWORK_STRIDE
@@ -61,8 +68,12 @@ REAL_SAMPLE_KEYS = (
     "depth_max",
     "sparse_depth",
     "label_depth",
+    "pseudo_depth",
     "is_real",
 )
+
+#: Kinds of pseudo-label a real root can provide (``RealDatasetConfig.pseudo_labels``).
+PSEUDO_LABEL_KINDS = ("none", "geometric")
 
 
 def _pair(name: str, value) -> tuple[float, float]:
@@ -107,6 +118,13 @@ class RealDatasetConfig:
     color: float = field(default=0.05, metadata={"help": "jitter: per-channel gain std"})
     noise: float = field(default=0.01, metadata={"help": "jitter: Gaussian noise std (max)"})
     min_points: int = field(default=20, metadata={"help": "references need this many sparse points"})
+    pseudo_labels: str = field(
+        default="none",
+        metadata={
+            "help": "dense pseudo-labels: 'geometric' reads each root's stereo/depth_maps/NAME.geometric.bin "
+            "(roots are workspaces after colmap-pvs stereo); 'none' uses the SfM points only"
+        },
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roots", tuple(Path(r) for r in self.roots))
@@ -132,6 +150,11 @@ class RealDatasetConfig:
             )
         if min(self.brightness, self.contrast, self.color, self.noise) < 0 or self.gamma[0] <= 0:
             raise ConfigError("RealDatasetConfig: jitter amounts must be >= 0 and gamma > 0")
+        if self.pseudo_labels not in PSEUDO_LABEL_KINDS:
+            raise ConfigError(
+                f"RealDatasetConfig: pseudo_labels must be one of {PSEUDO_LABEL_KINDS}, got "
+                f"{self.pseudo_labels!r}"
+            )
 
     @property
     def num_views(self) -> int:
@@ -146,6 +169,7 @@ class _Scene:
     selection: ViewSelection
     references: list[str]
     cache: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pseudo: dict[str, Path] = field(default_factory=dict)  # reference name -> its pseudo-label map
 
 
 def _find_sparse(root: Path) -> Path:
@@ -205,6 +229,50 @@ def _crop_resize(image: np.ndarray, K: np.ndarray, window, out_w: int, out_h: in
     return out, K_new
 
 
+def _find_pseudo_labels(root: Path, images_dir: Path, references: list[str], kind: str) -> dict[str, Path]:
+    """The ``kind`` depth map of each reference in the workspace ``root`` (those that exist)."""
+    if images_dir.parent.resolve() != root.resolve():
+        raise WorkspaceError(
+            f"training scene {str(root)!r} has a distorted model, so it has no pseudo-labels: give the "
+            "dense workspace that colmap-pvs undistort + stereo wrote instead"
+        )
+    maps = root / "stereo" / "depth_maps"
+    found = {n: maps / f"{n}.{kind}.bin" for n in references if (maps / f"{n}.{kind}.bin").is_file()}
+    if not found:
+        raise WorkspaceError(
+            f"training scene {str(root)!r} has no {kind} depth map in {str(maps)!r}: run colmap-pvs stereo "
+            f"on it first (pseudo_labels={kind!r})"
+        )
+    if len(found) < len(references):
+        logger.warning("training scene %s: %d of %d references have no %s map (no pseudo-label there)",
+                       root, len(references) - len(found), len(references), kind)
+    return found
+
+
+def crop_label_map(
+    label: np.ndarray, image_size: tuple[int, int], window, out_w: int, out_h: int
+) -> np.ndarray:
+    """Nearest-pixel crop of a ``stereo/`` depth map of the whole image into an ``out_h x out_w`` window.
+
+    Output pixel ``(j, i)`` takes the map pixel whose ray is nearest to the ray of its centre. A map
+    in ``stereo/`` follows COLMAP's map convention: pixel ``(col, row)`` holds the ray of continuous
+    coordinate ``(col, row)`` at the map's scale (``docs/CONVENTIONS.md``), so the nearest pixel is
+    ``round``, not ``floor``, of the continuous coordinate.
+
+    Args:
+        label: ``[Hm, Wm]`` depth map of the whole image (any resolution; 0 = none).
+        image_size: ``(w, h)`` of the image that ``window`` (``x0, y0, cw, ch``) is given in.
+    """
+    w, h = image_size
+    Hm, Wm = label.shape
+    x0, y0, cw, ch = window
+    u = (x0 + (np.arange(out_w) + 0.5) * cw / out_w) * (Wm / w)  # continuous map coordinates
+    v = (y0 + (np.arange(out_h) + 0.5) * ch / out_h) * (Hm / h)
+    iu = np.clip(np.floor(u + 0.5).astype(np.int64), 0, Wm - 1)
+    iv = np.clip(np.floor(v + 0.5).astype(np.int64), 0, Hm - 1)
+    return label[iv[:, None], iu[None, :]].astype(np.float32)
+
+
 class RealMVSDataset(Dataset):
     """Real MVS samples without GT depth (see the module docstring)."""
 
@@ -224,7 +292,11 @@ class RealMVSDataset(Dataset):
             if not refs:
                 logger.warning("training scene %s has no usable reference image; skipped", root)
                 continue
-            self.scenes.append(_Scene(Path(root), images_dir, model, selection, sorted(refs)))
+            scene = _Scene(Path(root), images_dir, model, selection, sorted(refs))
+            if config.pseudo_labels != "none":
+                scene.pseudo = _find_pseudo_labels(Path(root), images_dir, scene.references,
+                                                   config.pseudo_labels)
+            self.scenes.append(scene)
         self.index = [(s, name) for s, scene in enumerate(self.scenes) for name in scene.references]
         if not self.index:
             raise WorkspaceError(f"no usable reference image in the training scenes {config.roots}")
@@ -315,6 +387,8 @@ class RealMVSDataset(Dataset):
                 uv = (K @ p)[:2] / p[2] if p[2] > 0 else np.array([w / 2, h / 2])
                 center = (float(uv[0]), float(uv[1])) if np.all(np.isfinite(uv)) else (w / 2, h / 2)
             window = _crop_window(w, h, aspect, scale, center)
+            if k == 0:
+                ref_window = window
             out, K_new = _crop_resize(img, K, window, c.width, c.height)
             photo.append(out.transpose(2, 0, 1))
             images.append(self._jitter(out, rng).transpose(2, 0, 1))
@@ -326,6 +400,10 @@ class RealMVSDataset(Dataset):
         hints = sparse_depth_map(xyz[is_hint], Ks[0], ref.cam_from_world, c.height, c.width)
         labels = sparse_depth_map(xyz[~is_hint], Ks[0], ref.cam_from_world, c.height, c.width)
         labels[hints > 0] = 0.0  # a pixel holding a hint never also holds a label
+        pseudo = np.zeros((c.height, c.width), np.float32)
+        if ref_name in scene.pseudo:
+            pseudo = crop_label_map(read_depth_map(scene.pseudo[ref_name]), (w0, h0),
+                                    ref_window, c.width, c.height)
         f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
         return {
             "images": f32(np.stack(images)),
@@ -337,6 +415,7 @@ class RealMVSDataset(Dataset):
             "depth_max": torch.tensor(dmax, dtype=torch.float32),
             "sparse_depth": f32(hints[None]),
             "label_depth": f32(labels),
+            "pseudo_depth": f32(pseudo),
             "is_real": torch.tensor(1.0),
         }
 
@@ -347,7 +426,7 @@ class MixedDataset(Dataset):
     Index ``i`` is real when ``hash(seed, i)`` falls below ``real_fraction`` (a pure function of
     the index); real samples cycle through ``real``, synthetic ones through ``synthetic``.
     Synthetic samples get the real sample's extra keys (``photo_images`` = ``images``,
-    empty ``label_depth``, ``is_real`` = 0).
+    empty ``label_depth`` and ``pseudo_depth``, ``is_real`` = 0).
     """
 
     def __init__(self, synthetic: Dataset | None, real: Dataset, real_fraction: float, seed: int = 0) -> None:
@@ -371,8 +450,17 @@ class MixedDataset(Dataset):
         sample = dict(self.synthetic[index % len(self.synthetic)])
         sample["photo_images"] = sample["images"]
         sample["label_depth"] = torch.zeros_like(sample["depth"])
+        sample["pseudo_depth"] = torch.zeros_like(sample["depth"])
         sample["is_real"] = torch.tensor(0.0)
         return sample
 
 
-__all__ = ["REAL_SAMPLE_KEYS", "MixedDataset", "RealDatasetConfig", "RealMVSDataset", "open_scene"]
+__all__ = [
+    "PSEUDO_LABEL_KINDS",
+    "REAL_SAMPLE_KEYS",
+    "MixedDataset",
+    "RealDatasetConfig",
+    "RealMVSDataset",
+    "crop_label_map",
+    "open_scene",
+]

@@ -16,8 +16,12 @@ evaluated on every network output (``PVSNetOutput.depths``, weights
   depth range, coarse outputs take the front-most label of their block).
 - **smoothness**: edge-aware first-order smoothness of the mean-normalised inverse depth,
   ``|d_x (1/z)| exp(-|d_x I|) + |d_y (1/z)| exp(-|d_y I|)``.
+- **pseudo** (self-training, optional): dense ``pseudo_depth`` labels, the depths of an
+  earlier model's geometric map that agree across views, supervise the depth like the
+  sparse labels do (masked L1 divided by the depth range).
 
-Total: ``photometric_weight * photo + sparse_weight * sparse + smooth_weight * smooth``.
+Total: ``photometric_weight * photo + sparse_weight * sparse + smooth_weight * smooth
++ pseudo_weight * pseudo``.
 """
 
 from __future__ import annotations
@@ -44,9 +48,12 @@ class SelfSupConfig:
     min_sources: int = field(
         default=1, metadata={"help": "a pixel counts when at least this many sources see it"}
     )
+    pseudo_weight: float = field(
+        default=1.0, metadata={"help": "weight of the dense pseudo-label term (samples that have them)"}
+    )
 
     def __post_init__(self) -> None:
-        for name in ("photometric_weight", "sparse_weight", "smooth_weight"):
+        for name in ("photometric_weight", "sparse_weight", "smooth_weight", "pseudo_weight"):
             value = getattr(self, name)
             if not value >= 0:
                 raise ConfigError(f"SelfSupConfig: {name} must be >= 0, got {value}")
@@ -65,6 +72,7 @@ class SelfSupLoss:
     sparse: torch.Tensor
     smooth: torch.Tensor
     per_output: torch.Tensor
+    pseudo: torch.Tensor | None = None
 
 
 def _pool_images(images: torch.Tensor, stride: int) -> torch.Tensor:
@@ -180,6 +188,7 @@ def selfsup_loss(
     weights: Sequence[float],
     scales: Sequence[int],
     config: SelfSupConfig | None = None,
+    pseudo_depth: torch.Tensor | None = None,
 ) -> SelfSupLoss:
     """The self-supervised loss of one batch (module docstring).
 
@@ -190,6 +199,7 @@ def selfsup_loss(
         label_depth: ``[B, H, W]`` sparse depth labels (0 = none), disjoint from the hints.
         depth_min, depth_max: ``[B]``.
         weights: one weight per output; scales: one stride per output (``PVSNetConfig.output_scales``).
+        pseudo_depth: ``[B, H, W]`` dense pseudo-labels (0 = none), or ``None``.
     """
     cfg = config or SelfSupConfig()
     if images.dim() != 5:
@@ -220,12 +230,26 @@ def selfsup_loss(
     )
     total = total + cfg.sparse_weight * sparse.total
     per = torch.stack(per_output) + cfg.sparse_weight * sparse.per_output
+    pseudo = None
+    if pseudo_depth is not None and cfg.pseudo_weight > 0:
+        if pseudo_depth.shape != label_depth.shape:
+            raise ShapeError(
+                f"pseudo_depth {tuple(pseudo_depth.shape)} does not match label_depth "
+                f"{tuple(label_depth.shape)}"
+            )
+        dense = depth_loss(
+            depths, pseudo_depth, depth_min, depth_max, weights, gt_downsample="min", scales=scales
+        )
+        total = total + cfg.pseudo_weight * dense.total
+        per = per + cfg.pseudo_weight * dense.per_output
+        pseudo = dense.total.detach()
     return SelfSupLoss(
         total=total,
         photometric=photo_sum,
         sparse=sparse.total.detach(),
         smooth=smooth_sum,
         per_output=per,
+        pseudo=pseudo,
     )
 
 

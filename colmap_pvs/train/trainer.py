@@ -543,6 +543,7 @@ class Trainer:
                 cfg.model.loss_weights,
                 self._scales() or cfg.model.output_scales,
                 cfg.selfsup,
+                pseudo_depth=batch.get("pseudo_depth"),
             )
         return depth_loss(
             out.depths,
