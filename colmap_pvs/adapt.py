@@ -8,6 +8,13 @@ edge-aware smoothness). No ground truth is used. It runs through the ordinary
 :class:`~colmap_pvs.train.Trainer` with ``real_fraction=1``, so it is seeded, shows a progress
 bar and resumes after an interruption.
 
+Self-training (``colmap-pvs stereo --adapt_pseudo_labels filled``, or ``geometric``): the
+stereo step first runs every pass with the base checkpoint, and the adaptation then also fits
+those maps of the workspace as dense pseudo-labels (``AdaptConfig.pseudo_labels``, read as in
+:mod:`colmap_pvs.train.real_dataset`) before stereo runs again with the adapted weights. What the
+labels were made with (``labels``: the stereo settings of the passes that wrote them, hashed) is
+part of the fingerprint below, so changed settings adapt again on new labels.
+
 Files, all inside ``WORKSPACE/stereo/adapt/``: the run folder of the trainer (``last.pt``,
 ``log.csv``, ``config.json``), ``adapted.pt`` (the weights inference uses) and
 ``adapted.json`` (provenance: the base checkpoint's sha256, the settings, steps and seconds).
@@ -22,6 +29,7 @@ import logging
 import shutil
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,8 +55,21 @@ class AdaptConfig:
     max_image_size: int = field(default=352, metadata={"help": "images are downscaled to this first"})
     num_views: int = field(default=5, metadata={"help": "views per sample (reference + best sources)"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = torch's default)"})
+    pseudo_labels: str = field(
+        default="none",
+        metadata={
+            "help": "also fit the workspace's own maps of this kind ('geometric' or 'filled', made by "
+            "the base checkpoint) as dense pseudo-labels; 'none': self-supervised losses only"
+        },
+    )
 
     def __post_init__(self) -> None:
+        from .train.real_dataset import PSEUDO_LABEL_KINDS
+
+        if self.pseudo_labels not in PSEUDO_LABEL_KINDS:
+            raise ConfigError(
+                f"AdaptConfig: pseudo_labels must be one of {PSEUDO_LABEL_KINDS}, got {self.pseudo_labels!r}"
+            )
         if self.steps < 0 or not self.max_seconds >= 0:
             raise ConfigError(
                 f"AdaptConfig: steps and max_seconds must be >= 0, got {self.steps}, {self.max_seconds}"
@@ -69,15 +90,46 @@ class AdaptResult:
     reused: bool
 
 
+def _fingerprint(base_checkpoint: Path, config: AdaptConfig, labels: Mapping | None) -> dict:
+    out = {
+        "base_checkpoint_sha256": file_sha256(Path(base_checkpoint)),
+        "settings": {k: v for k, v in config_to_dict(config).items() if k != "threads"},
+    }
+    if config.pseudo_labels != "none":
+        out["labels"] = dict(labels or {})
+    return out
+
+
+def _reusable(stereo_dir: Path, fingerprint: dict) -> dict | None:
+    """The metadata of ``stereo/adapt/adapted.pt`` if it was made with ``fingerprint``, else ``None``."""
+    out = Path(stereo_dir) / ADAPT_DIRNAME
+    if not ((out / "adapted.pt").is_file() and (out / "adapted.json").is_file()):
+        return None
+    try:
+        meta = json.loads((out / "adapted.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if meta.get("fingerprint") == fingerprint else None
+
+
+def adapted_is_current(stereo_dir: Path, base_checkpoint: Path, config: AdaptConfig,
+                       labels: Mapping | None = None) -> bool:
+    """Whether :func:`adapt_checkpoint` with these arguments would reuse ``stereo/adapt/adapted.pt``."""
+    return _reusable(stereo_dir, _fingerprint(base_checkpoint, config, labels)) is not None
+
+
 def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Path, config: AdaptConfig,
-                     progress: bool = True) -> AdaptResult:
+                     progress: bool = True, labels: Mapping | None = None) -> AdaptResult:
     """Fine-tune ``base_checkpoint`` on the workspace's own images; return the adapted checkpoint.
 
     Args:
         workspace_root: the dense workspace (``images/``, pinhole ``sparse/``).
         stereo_dir: its ``stereo/`` folder (the adaptation writes ``stereo/adapt/``).
         base_checkpoint: the checkpoint to adapt.
-        config: :class:`AdaptConfig` with ``steps > 0``.
+        config: :class:`AdaptConfig` with ``steps > 0``. With ``pseudo_labels`` set, the
+            workspace's ``stereo/depth_maps/NAME.{pseudo_labels}.bin`` must exist.
+        labels: with ``pseudo_labels``, what those maps were made with (e.g. the settings of the
+            stereo run that wrote them): part of the fingerprint, so other labels adapt again.
     """
     from .model import load_checkpoint
     from .train import TrainConfig, Trainer, TrainingInterrupted
@@ -87,18 +139,11 @@ def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Pa
         raise ConfigError("adapt_checkpoint needs AdaptConfig.steps > 0")
     out = Path(stereo_dir) / ADAPT_DIRNAME
     adapted, meta_path = out / "adapted.pt", out / "adapted.json"
-    fingerprint = {
-        "base_checkpoint_sha256": file_sha256(Path(base_checkpoint)),
-        "settings": {k: v for k, v in config_to_dict(config).items() if k != "threads"},
-    }
-    if adapted.is_file() and meta_path.is_file():
-        try:
-            meta = json.loads(meta_path.read_text())
-        except (OSError, ValueError):
-            meta = {}
-        if meta.get("fingerprint") == fingerprint:
-            logger.info("test-time adaptation: reusing %s (%s steps)", adapted, meta.get("steps"))
-            return AdaptResult(adapted, int(meta.get("steps", 0)), float(meta.get("seconds", 0.0)), True)
+    fingerprint = _fingerprint(base_checkpoint, config, labels)
+    meta = _reusable(stereo_dir, fingerprint)
+    if meta is not None:
+        logger.info("test-time adaptation: reusing %s (%s steps)", adapted, meta.get("steps"))
+        return AdaptResult(adapted, int(meta.get("steps", 0)), float(meta.get("seconds", 0.0)), True)
     run = out / "run"
     run_meta = out / "run.json"
     if run.exists():
@@ -126,6 +171,7 @@ def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Pa
             num_worst=0,
             seed=config.seed,
             min_points=5,
+            pseudo_labels=config.pseudo_labels,
         ),
         real_fraction=1.0,
         steps=config.steps,
@@ -167,4 +213,4 @@ def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Pa
     return AdaptResult(adapted, trainer.step, seconds, False)
 
 
-__all__ = ["ADAPT_DIRNAME", "AdaptConfig", "AdaptResult", "adapt_checkpoint"]
+__all__ = ["ADAPT_DIRNAME", "AdaptConfig", "AdaptResult", "adapt_checkpoint", "adapted_is_current"]

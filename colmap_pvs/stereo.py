@@ -194,6 +194,14 @@ class StereoConfig:
     )
     adapt_lr: float = field(default=1e-4, metadata={"help": "test-time adaptation: learning rate"})
     adapt_seed: int = field(default=0, metadata={"help": "test-time adaptation: seed"})
+    adapt_pseudo_labels: Literal["none", "geometric", "filled"] = field(
+        default="none",
+        metadata={
+            "help": "test-time adaptation: also fit the workspace's own maps of this kind as dense "
+            "pseudo-labels (self-training): stereo first runs with the base checkpoint, adapts on its "
+            "'geometric' or 'filled' maps, then runs again with the adapted weights; 'none': off"
+        },
+    )
     # Scale-out (colmap_pvs.distributed; README "Scale out on Ray").
     backend: Literal["local", "ray"] = field(
         default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
@@ -297,6 +305,16 @@ class StereoConfig:
         check_range("min_sources", self.min_sources, low=1)
         check_range("adapt_steps", self.adapt_steps, low=0)
         check_range("adapt_max_seconds", self.adapt_max_seconds, low=0.0)
+        if self.adapt_pseudo_labels != "none":
+            if self.adapt_steps == 0:
+                raise ConfigError(
+                    f"adapt_pseudo_labels={self.adapt_pseudo_labels!r} needs adapt_steps > 0 (got 0)"
+                )
+            if not self.geom_consistency or (self.adapt_pseudo_labels == "filled" and not self.geom_fill):
+                raise ConfigError(
+                    f"adapt_pseudo_labels={self.adapt_pseudo_labels!r} needs the pass that writes those "
+                    f"maps: geom_consistency={self.geom_consistency}, geom_fill={self.geom_fill}"
+                )
         check_range("geom_min_visibility", self.geom_min_visibility, low=0.0, high=1.0)
         check_range("geom_num_sources", self.geom_num_sources, low=0)
         for name, low in (("ray_workers", 0), ("ray_worker_threads", 1), ("ray_worker_memory", 0.0),
@@ -400,14 +418,36 @@ def adapt_config(config: StereoConfig):
         seed=config.adapt_seed,
         num_views=config.num_views,
         threads=config.threads,
+        pseudo_labels=config.adapt_pseudo_labels,
     )
+
+
+def pseudo_label_key(config: StereoConfig, ws: Workspace) -> dict | None:
+    """What the pseudo-labels of self-training are made with (``None`` without them).
+
+    The settings of the passes up to ``adapt_pseudo_labels``, their format versions and the
+    ``patch-match.cfg`` content, hashed: any change among them makes :func:`run_stereo` adapt again.
+    """
+    kind = config.adapt_pseudo_labels
+    if kind == "none":
+        return None
+    keys = PHOTOMETRIC_SETTINGS + ("wide_sources",) + GEOMETRIC_SETTINGS
+    keys += FILLED_SETTINGS if kind == "filled" else ()
+    cfg = config_to_dict(config)
+    settings = {k: cfg[k] for k in keys}
+    settings["format_versions"] = {k: FORMAT_VERSIONS[k] for k in ("photometric", "geometric", kind)}
+    if ws.patch_match_cfg.is_file():
+        settings["patch_match_cfg_sha256"] = file_sha256(ws.patch_match_cfg)
+    text = json.dumps(settings, sort_keys=True, default=str).encode()
+    return {"kind": kind, "settings_sha256": hashlib.sha256(text).hexdigest()}
 
 
 def _adapt(config: StereoConfig, ws: Workspace, base: Path, device: torch.device):
     """Test-time adaptation of ``base`` on the workspace; returns ``(net, adapted path, seconds)``."""
     from .adapt import adapt_checkpoint
 
-    done = adapt_checkpoint(ws.root, ws.stereo_dir, base, adapt_config(config))
+    done = adapt_checkpoint(ws.root, ws.stereo_dir, base, adapt_config(config),
+                            labels=pseudo_label_key(config, ws))
     net, path, _ = load_stereo_model(replace_config(config, checkpoint=done.checkpoint), device)
     logger.info(
         "test-time adaptation: %d steps, %.1f s (%s)", done.steps, done.seconds,
@@ -1191,10 +1231,39 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     Images without usable sources or sparse points are skipped with a warning.
     ``config.backend == "ray"`` runs the same passes on a Ray cluster (:mod:`colmap_pvs.distributed`).
     """
+    first_round = _pseudo_label_round(config) if config.adapt_pseudo_labels != "none" else 0.0
     if config.backend == "ray":
         from .distributed import run_stereo_ray
 
-        return run_stereo_ray(config)
+        result = run_stereo_ray(config)
+    else:
+        result = _run_stereo_here(config)
+    if first_round > 0:  # the run that made the pseudo-labels is part of the adaptation's cost
+        result.adapt_seconds += first_round
+        count = len(result.processed) + len(result.already_done) + len(result.skipped)
+        result.adapt_seconds_per_image = result.adapt_seconds / max(1, count)
+    return result
+
+
+def _pseudo_label_round(config: StereoConfig) -> float:
+    """Self-training's first round: every pass with the base checkpoint, whose maps become the
+    adaptation's pseudo-labels. Skipped (0 s) when the adapted weights for them already exist."""
+    from .adapt import adapted_is_current
+
+    ws, _ = load_workspace(config.workspace_path)
+    base = Path(config.checkpoint) if config.checkpoint is not None else DEFAULT_CHECKPOINT
+    if base.is_file() and adapted_is_current(ws.stereo_dir, base, adapt_config(config),
+                                             pseudo_label_key(config, ws)):
+        return 0.0
+    logger.info("test-time adaptation on %s pseudo-labels: a first run with the base checkpoint",
+                config.adapt_pseudo_labels)
+    start = time.perf_counter()
+    run_stereo(replace_config(config, adapt_steps=0, adapt_pseudo_labels="none"))
+    return time.perf_counter() - start
+
+
+def _run_stereo_here(config: StereoConfig) -> StereoResult:
+    """:func:`run_stereo` in this process."""
     wall = time.perf_counter()
     ctx = prepare_stereo(config, background_io=True)
     ws = ctx.workspace

@@ -12,8 +12,10 @@ from conftest import make_tiny_checkpoint
 
 from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
 from colmap_pvs.errors import ConfigError
+from colmap_pvs.evaluate import file_sha256
 from colmap_pvs.model import load_checkpoint
 from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.train import real_dataset
 from colmap_pvs.train.real_dataset import RealDatasetConfig, RealMVSDataset
 from colmap_pvs.train.selfsup import selfsup_loss
 
@@ -108,8 +110,54 @@ def test_stereo_runs_adaptation_first(workspace, base):
     assert (workspace / "stereo" / "adapt" / "adapted.pt").is_file()
 
 
+def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, base, monkeypatch):
+    # adapt_pseudo_labels: a first run with the base checkpoint writes the maps, the adaptation
+    # crops them as pseudo-labels before any adapted weights exist, and the final maps are the
+    # adapted network's
+    stereo_dir = workspace / "stereo"
+    adapted = stereo_dir / "adapt" / "adapted.pt"
+    crops: list[bool] = []  # per pseudo-label crop: did adapted weights already exist?
+    crop = real_dataset.crop_label_map
+
+    def spy(label, *args, **kwargs):
+        crops.append(adapted.exists())
+        return crop(label, *args, **kwargs)
+
+    monkeypatch.setattr(real_dataset, "crop_label_map", spy)
+    cfg = StereoConfig(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
+                       adapt_steps=2, min_confidence=0.0, adapt_pseudo_labels="filled")
+    result = run_stereo(cfg)
+    assert crops and not any(crops)
+    meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
+    assert meta["fingerprint"]["labels"]["kind"] == "filled"
+    assert result.adapt_seconds > meta["seconds"]  # the first run counts as adaptation time
+    sha = file_sha256(adapted)
+    assert sha != file_sha256(base)
+    names = sorted(result.processed)
+    for name in names:
+        prov = json.loads((stereo_dir / "provenance" / f"{name}.photometric.json").read_text())
+        assert prov["settings"]["checkpoint_sha256"] == sha
+        assert (stereo_dir / "depth_maps" / f"{name}.filled.bin").is_file()
+    # a rerun keeps everything (no first run, no adaptation)
+    crops.clear()
+    again = run_stereo(cfg)
+    assert not crops and not again.processed and sorted(again.already_done) == names
+    assert again.adapt_seconds == pytest.approx(meta["seconds"])
+    # other label settings: adapted again, on the labels of a new base run
+    redo = run_stereo(StereoConfig(**{**cfg.__dict__, "geom_max_depth_error": 0.05}))
+    assert crops and not any(crops) and sorted(redo.processed) == names
+    new_meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
+    assert new_meta["fingerprint"]["labels"] != meta["fingerprint"]["labels"]
+
+
 def test_bad_adaptation_settings():
     with pytest.raises(ConfigError):
         AdaptConfig(steps=-1)
     with pytest.raises(ConfigError):
         AdaptConfig(steps=1, lr=0.0)
+    with pytest.raises(ConfigError, match="pseudo_labels"):
+        AdaptConfig(steps=1, pseudo_labels="dense")
+    with pytest.raises(ConfigError, match="adapt_steps"):
+        StereoConfig(workspace_path=Path("ws"), adapt_pseudo_labels="geometric")
+    with pytest.raises(ConfigError, match="geom_fill"):
+        StereoConfig(workspace_path=Path("ws"), adapt_steps=5, adapt_pseudo_labels="filled", geom_fill=False)

@@ -73,7 +73,7 @@ REAL_SAMPLE_KEYS = (
 )
 
 #: Kinds of pseudo-label a real root can provide (``RealDatasetConfig.pseudo_labels``).
-PSEUDO_LABEL_KINDS = ("none", "geometric")
+PSEUDO_LABEL_KINDS = ("none", "geometric", "filled")
 
 
 def _pair(name: str, value) -> tuple[float, float]:
