@@ -7,6 +7,8 @@ evaluation), for comparing checkpoints and stereo settings in a few minutes::
     python benchmarks/hololens_quick.py --tag tta30 --stereo adapt_steps=30
     python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag full   # the 60 refs
     python benchmarks/hololens_quick.py --tag base --resume --stereo geom_fill_segments=false
+    python benchmarks/hololens_quick.py --tag all --all_references --stereo adapt_steps=150 \
+        adapt_pseudo_labels=filled   # every frame a reference; then --offset 1 --resume: the check
 
 ``--resume`` keeps the tag's maps and recomputes only the passes whose settings changed (the
 stereo step's own resume), for trying a later pass's settings without rerunning the network.
@@ -45,6 +47,9 @@ def main() -> int:
     p.add_argument("--disturbed", action="store_true", help="also: 2 of the sources replaced by far frames")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--resume", action="store_true", help="keep the tag's current maps (no overwrite)")
+    p.add_argument("--all_references", action="store_true",
+                   help="every frame is a reference (as in a user's workspace); --stride/--offset pick the "
+                   "frames evaluated")
     p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
     p.add_argument("--views", nargs="*", default=[], metavar="KEY=VALUE", help="ViewSelectionConfig fields")
     a = p.parse_args()
@@ -61,7 +66,8 @@ def main() -> int:
     view_cfg = config_from_dict(ViewSelectionConfig, view_fields)
     sel = select_views(model, view_cfg)
     refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
-    settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in refs})]
+    computed = list(sel.references) if a.all_references else refs
+    settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in computed})]
     if a.disturbed:
         far = {}
         for r in refs:

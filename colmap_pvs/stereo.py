@@ -1230,6 +1230,8 @@ def run_stereo(config: StereoConfig) -> StereoResult:
     Resumable per pass: maps that exist with matching provenance are kept unless ``config.overwrite``.
     Images without usable sources or sparse points are skipped with a warning.
     ``config.backend == "ray"`` runs the same passes on a Ray cluster (:mod:`colmap_pvs.distributed`).
+    With ``adapt_pseudo_labels`` (self-training) a first run with the base checkpoint writes the maps
+    that the adaptation fits; its time is part of ``adapt_seconds``.
     """
     first_round = _pseudo_label_round(config) if config.adapt_pseudo_labels != "none" else 0.0
     if config.backend == "ray":

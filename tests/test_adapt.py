@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -144,7 +145,7 @@ def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, b
     assert not crops and not again.processed and sorted(again.already_done) == names
     assert again.adapt_seconds == pytest.approx(meta["seconds"])
     # other label settings: adapted again, on the labels of a new base run
-    redo = run_stereo(StereoConfig(**{**cfg.__dict__, "geom_max_depth_error": 0.05}))
+    redo = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
     assert crops and not any(crops) and sorted(redo.processed) == names
     new_meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
     assert new_meta["fingerprint"]["labels"] != meta["fingerprint"]["labels"]
