@@ -257,13 +257,24 @@ def _worker_pids(state: str) -> list[int]:
 
 
 def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
-    """Kill the first worker seen running ``process`` (mid-task) with SIGKILL."""
+    """Kill the first worker seen running ``process`` (mid-task) with SIGKILL.
+
+    Once a worker exists, only its own process title is watched (one small read per check): a scan
+    of all of ``/proc`` can take longer than a whole task of the tiny network on a quiet machine.
+    """
     while not stop.is_set():
-        busy = _worker_pids("process")
-        if busy:
-            os.kill(busy[0], signal.SIGKILL)
-            killed.append(busy[0])
-            return
+        for pid in _worker_pids("any"):
+            title = Path("/proc") / str(pid) / "cmdline"
+            while not stop.is_set():
+                try:
+                    busy = title.read_bytes().startswith(b"ray::StereoWorker.process")
+                except OSError:  # that worker is gone
+                    break
+                if busy:
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    return
+                time.sleep(0.001)
         time.sleep(0.005)
 
 
