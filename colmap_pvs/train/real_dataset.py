@@ -21,11 +21,12 @@ The reference's SfM points inside the crop are split at random: a fraction ``hin
 becomes the network's ``sparse_depth`` hints, the others become ``label_depth``; a point is
 never both in one sample.
 
-Pseudo-labels (self-training, ``pseudo_labels="geometric"``): each root is then a dense
-workspace on which ``colmap-pvs stereo`` has run, and the reference's geometric map
+Pseudo-labels (self-training, ``pseudo_labels="geometric"`` or ``"filled"``): each root is then a
+dense workspace on which ``colmap-pvs stereo`` has run, and the reference's geometric map
 (``stereo/depth_maps/NAME.geometric.bin``: depths that at least ``geom_min_consistent``
-sources agree with, 0 elsewhere) is cropped with the reference's window (nearest pixel) into
-``pseudo_depth``. A reference without such a map gets an empty ``pseudo_depth``.
+sources agree with, 0 elsewhere) or its dense completion (``NAME.filled.bin``) is cropped with
+the reference's window (nearest pixel) into ``pseudo_depth``. A reference without such a map gets
+an empty ``pseudo_depth``.
 
 Sample dict (``N = 1 + num_best + num_worst``): ``images``, ``photo_images`` ``[N, 3, H, W]``,
 ``intrinsics`` ``[N, 3, 3]``, ``cam_from_world`` ``[N, 4, 4]``, ``depth`` ``[H, W]`` (all zero:
@@ -121,8 +122,9 @@ class RealDatasetConfig:
     pseudo_labels: str = field(
         default="none",
         metadata={
-            "help": "dense pseudo-labels: 'geometric' reads each root's stereo/depth_maps/NAME.geometric.bin "
-            "(roots are workspaces after colmap-pvs stereo); 'none' uses the SfM points only"
+            "help": "dense pseudo-labels: 'geometric' ('filled') reads each root's "
+            "stereo/depth_maps/NAME.geometric.bin (.filled.bin; roots are workspaces after colmap-pvs "
+            "stereo); 'none' uses the SfM points only"
         },
     )
 
