@@ -65,7 +65,13 @@ from .io.maps import (
     write_depth_map,
     write_normal_map,
 )
-from .io.workspace import Workspace, load_workspace, read_patch_match_cfg, write_fusion_cfg
+from .io.workspace import (
+    Workspace,
+    detect_workspace,
+    load_workspace,
+    read_patch_match_cfg,
+    write_fusion_cfg,
+)
 from .model.runtime import check_memory_budget
 from .normals import depth_to_normals, fit_normals
 from .prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
@@ -381,11 +387,16 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def base_checkpoint_path(config: StereoConfig) -> Path:
+    """The checkpoint a run starts from (``config.checkpoint``, else the shipped default)."""
+    return Path(config.checkpoint) if config.checkpoint is not None else DEFAULT_CHECKPOINT
+
+
 def load_stereo_model(config: StereoConfig, device: torch.device):
     """Load the checkpoint (``weights_only=True``) and apply the config's overrides."""
     from .model import PVSNet, load_checkpoint
 
-    path = Path(config.checkpoint) if config.checkpoint is not None else DEFAULT_CHECKPOINT
+    path = base_checkpoint_path(config)
     if config.checkpoint is None and not path.exists():
         raise CheckpointError(
             f"no trained default checkpoint is shipped at {str(path)!r}; pass --checkpoint PATH "
@@ -1252,8 +1263,8 @@ def _pseudo_label_round(config: StereoConfig) -> float:
     adaptation's pseudo-labels. Skipped (0 s) when the adapted weights for them already exist."""
     from .adapt import adapted_is_current
 
-    ws, _ = load_workspace(config.workspace_path)
-    base = Path(config.checkpoint) if config.checkpoint is not None else DEFAULT_CHECKPOINT
+    ws = detect_workspace(config.workspace_path)  # the paths only: the run itself reads the model
+    base = base_checkpoint_path(config)
     if base.is_file() and adapted_is_current(ws.stereo_dir, base, adapt_config(config),
                                              pseudo_label_key(config, ws)):
         return 0.0

@@ -16,9 +16,9 @@ evaluated on every network output (``PVSNetOutput.depths``, weights
   depth range, coarse outputs take the front-most label of their block).
 - **smoothness**: edge-aware first-order smoothness of the mean-normalised inverse depth,
   ``|d_x (1/z)| exp(-|d_x I|) + |d_y (1/z)| exp(-|d_y I|)``.
-- **pseudo** (self-training, optional): dense ``pseudo_depth`` labels, the depths of an
-  earlier model's geometric map that agree across views, supervise the depth like the
-  sparse labels do (masked L1 divided by the depth range).
+- **pseudo** (self-training, optional): dense ``pseudo_depth`` labels, an earlier model's
+  geometric map (the depths that agree across views) or its dense completion, supervise the
+  depth like the sparse labels do (masked L1 divided by the depth range).
 
 Total: ``photometric_weight * photo + sparse_weight * sparse + smooth_weight * smooth
 + pseudo_weight * pseudo``.
