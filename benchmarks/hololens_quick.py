@@ -30,7 +30,7 @@ from colmap_pvs.config import config_from_dict
 from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import run_stereo
 from colmap_pvs.views import ViewSelectionConfig, select_views
 
 
@@ -79,18 +79,8 @@ def main() -> int:
     for label, sources in settings:
         ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse, a.resume)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
-        fields = {
-            "workspace_path": str(ws),
-            "num_views": a.num_views,
-            "max_image_size": a.max_image_size,
-            "checkpoint": str(a.checkpoint.resolve()),
-            "threads": a.threads,
-            "overwrite": not a.resume,
-            "device": "cpu",
-            **extra,
-        }
         start = time.perf_counter()
-        result = run_stereo(config_from_dict(StereoConfig, fields))
+        result = run_stereo(rd.stereo_config(ws, a, extra))
         wall = time.perf_counter() - start
         done = {  # per pass, the references computed now or kept as they were (--resume)
             "photometric": result.processed + result.already_done,

@@ -122,6 +122,25 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
+def stereo_config(ws: Path, args: argparse.Namespace, extra: dict):
+    """The ``StereoConfig`` of a benchmark run on the CPU in ``ws`` from its ``args`` (``num_views``,
+    ``max_image_size``, ``checkpoint``, ``threads``, ``resume``) and ``extra`` fields."""
+    from colmap_pvs.config import config_from_dict
+    from colmap_pvs.stereo import StereoConfig
+
+    fields = {
+        "workspace_path": str(ws),
+        "num_views": args.num_views,
+        "max_image_size": args.max_image_size,
+        "checkpoint": str(args.checkpoint.resolve()),
+        "threads": args.threads,
+        "overwrite": not args.resume,
+        "device": "cpu",
+        **extra,
+    }
+    return config_from_dict(StereoConfig, fields)
+
+
 def make_workspace(root: Path, images: Path, sparse: Path, keep_stereo: bool = False) -> Path:
     """A dense workspace with linked images/ and sparse/ and an empty stereo/ (kept as it is with
     ``keep_stereo``, for a resumed run)."""

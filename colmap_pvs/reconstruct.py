@@ -50,7 +50,14 @@ STAGES = ("features", "matching", "mapping", "undistort", "stereo", "fusion", "m
 #: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so a moved
 #: copy of the same weights is the same checkpoint and new weights at the same path are not).
 STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
-    "features": ("photos", "camera_model", "single_camera", "max_num_features", "sift_max_image_size"),
+    "features": (
+        "photos",
+        "camera_model",
+        "single_camera",
+        "max_num_features",
+        "sift_peak_threshold",
+        "sift_max_image_size",
+    ),
     "matching": ("matcher", "exhaustive_max_images"),
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
@@ -74,6 +81,10 @@ class ReconstructConfig:
     camera_model: str = field(default="SIMPLE_RADIAL", metadata={"help": "COLMAP camera model for SfM"})
     single_camera: bool = field(default=False, metadata={"help": "all images share one camera"})
     max_num_features: int = field(default=4096, metadata={"help": "SIFT features per image"})
+    sift_peak_threshold: float = field(
+        default=0.0067,
+        metadata={"help": "SIFT peak (contrast) threshold (COLMAP's default); lower finds more keypoints"},
+    )
     sift_max_image_size: int = field(
         default=1600, metadata={"help": "SIFT runs on images downscaled to this longest side"}
     )
@@ -121,6 +132,8 @@ class ReconstructConfig:
     def __post_init__(self) -> None:
         if self.max_num_features < 16:
             raise ConfigError(f"max_num_features must be >= 16, got {self.max_num_features}")
+        if not 0.0 < self.sift_peak_threshold < 1.0:
+            raise ConfigError(f"sift_peak_threshold must be in (0, 1), got {self.sift_peak_threshold}")
         if self.num_views < 2:
             raise ConfigError(f"num_views must be >= 2, got {self.num_views}")
         if self.exhaustive_max_images < 2:
@@ -351,6 +364,7 @@ def _run_sfm(
         extraction.num_threads = config.num_threads
         extraction.max_image_size = config.sift_max_image_size
         extraction.sift.max_num_features = config.max_num_features
+        extraction.sift.peak_threshold = config.sift_peak_threshold
         reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
         mode = pycolmap.CameraMode.SINGLE if config.single_camera else pycolmap.CameraMode.AUTO
         with DatabaseProgress(db, "keypoints", len(names), "features", "image"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -109,9 +110,8 @@ def test_json_and_csv_readers(tmp_path):
 # --------------------------------------------------------------------------- triangulation
 
 
-def test_analytic_scene_points_land_on_the_surface(tmp_path):
-    """Exact poses of the analytic scene: triangulated points lie on its surface, poses stay fixed."""
-    import pycolmap
+def _analytic_scene_with_poses(tmp_path) -> dict:
+    """The analytic scene's workspace in ``tmp_path/ws`` and its exact cameras in ``tmp_path/poses.json``."""
     from scenes import make_analytic_workspace
 
     gt = make_analytic_workspace(tmp_path / "ws", width=320, height=240, focal=300.0, write_maps=False)
@@ -121,6 +121,15 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
         for im in model.images.values()
     ]
     (tmp_path / "poses.json").write_text(json.dumps({"images": entries}))
+    return gt
+
+
+def test_analytic_scene_points_land_on_the_surface(tmp_path):
+    """Exact poses of the analytic scene: triangulated points lie on its surface, poses stay fixed."""
+    import pycolmap
+
+    gt = _analytic_scene_with_poses(tmp_path)
+    model = gt["model"]
     out = import_poses(
         ImportPosesConfig(
             image_path=tmp_path / "ws" / "images",
@@ -143,15 +152,73 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
         )
         assert image.camera.model_name == "PINHOLE"
         np.testing.assert_allclose(image.camera.calibration_matrix(), model.camera_of(by_name[image.name]).K)
-    # Resumable: a second call returns the existing model without recomputing.
+    # Resumable: a second call with the same settings returns the existing model without recomputing.
     mtime = (out / "points3D.bin").stat().st_mtime_ns
     import_poses(
         ImportPosesConfig(
             image_path=tmp_path / "ws" / "images",
             poses_path=tmp_path / "poses.json",
             output_path=tmp_path / "out",
+            max_num_features=1024,
+            num_threads=2,  # threads do not change the model
         )
     )
+    assert (out / "points3D.bin").stat().st_mtime_ns == mtime
+
+
+def _keypoint_counts(db_path) -> list[int]:
+    import sqlite3
+
+    with sqlite3.connect(db_path) as db:
+        return [row[0] for row in db.execute("SELECT rows FROM keypoints ORDER BY image_id")]
+
+
+def test_settings_are_recorded_and_a_changed_peak_threshold_recomputes(tmp_path, caplog):
+    """The SIFT peak threshold reaches pycolmap (a higher one finds fewer keypoints in every image), and
+    a model made with other settings is refused, then recomputed with ``overwrite``."""
+    _analytic_scene_with_poses(tmp_path)
+
+    def config(**kw):
+        return ImportPosesConfig(
+            image_path=tmp_path / "ws" / "images",
+            poses_path=tmp_path / "poses.json",
+            output_path=tmp_path / "out",
+            num_threads=1,
+            **kw,
+        )
+
+    out = import_poses(config(sift_peak_threshold=0.002))
+    recorded = json.loads((tmp_path / "out" / "import_poses.json").read_text())
+    assert recorded["model_settings"]["sift_peak_threshold"] == 0.002
+    low = _keypoint_counts(tmp_path / "out" / "database.db")
+    mtime = (out / "points3D.bin").stat().st_mtime_ns
+    with pytest.raises(ConfigError, match=r"sift_peak_threshold 0\.002 -> 0\.008"):
+        import_poses(config(sift_peak_threshold=0.008))
+    assert (out / "points3D.bin").stat().st_mtime_ns == mtime  # refused: nothing touched
+    import_poses(config(sift_peak_threshold=0.008, overwrite=True))
+    high = _keypoint_counts(tmp_path / "out" / "database.db")
+    assert len(low) == len(high) == 5
+    assert all(h < lo for h, lo in zip(high, low, strict=True)), (low, high)
+    assert (
+        json.loads((tmp_path / "out" / "import_poses.json").read_text())["model_settings"][
+            "sift_peak_threshold"
+        ]
+        == 0.008
+    )
+    for bad in (0.0, -0.01, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="sift_peak_threshold"):
+            config(sift_peak_threshold=bad)
+    # A damaged record is refused naming the file; a model without one (made before the record
+    # existed) is reused as it is, with a warning.
+    record = tmp_path / "out" / "import_poses.json"
+    record.write_text("{not json")
+    with pytest.raises(WorkspaceError, match="import_poses.json"):
+        import_poses(config(sift_peak_threshold=0.008))
+    record.unlink()
+    mtime = (out / "points3D.bin").stat().st_mtime_ns
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs.io.import_poses"):
+        assert import_poses(config(sift_peak_threshold=0.002)) == out
+    assert "no record of its settings" in caplog.text
     assert (out / "points3D.bin").stat().st_mtime_ns == mtime
 
 

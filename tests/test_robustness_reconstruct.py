@@ -113,3 +113,31 @@ def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
     with pycolmap_log_to_file(tmp_path / "logs2", enabled=False) as folder:  # --log_level DEBUG
         pycolmap.logging.info("loud message")
     assert folder is None and "loud message" in capfd.readouterr().err
+
+
+def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_path):
+    """A lower SIFT peak threshold finds more keypoints; changing it is refused (naming it and the
+    features stage), and ``overwrite`` extracts again."""
+    import sqlite3
+
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur((rng.random((400, 500)) * 255).astype(np.uint8), (0, 0), 3)
+    images = tmp_path / "photos"
+    images.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
+
+    def keypoints(peak: float, overwrite: bool = False) -> list[int]:
+        reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
+                                      sift_peak_threshold=peak, stop_after="features", overwrite=overwrite))
+        with sqlite3.connect(tmp_path / "out" / "database.db") as db:
+            return [r[0] for r in db.execute("SELECT rows FROM keypoints ORDER BY image_id")]
+
+    high = keypoints(0.0067)
+    with pytest.raises(ConfigError, match=r"sift_peak_threshold 0\.0067 -> 0\.002 \(features\)"):
+        keypoints(0.002)
+    low = keypoints(0.002, overwrite=True)
+    assert len(low) == len(high) == 2
+    assert all(lo > hi for lo, hi in zip(low, high, strict=True)), (low, high)
+    with pytest.raises(ConfigError, match="sift_peak_threshold"):
+        ReconstructConfig(image_path=images, workspace_path=tmp_path / "x", sift_peak_threshold=0.0)
