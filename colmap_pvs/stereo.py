@@ -11,7 +11,10 @@ A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two pas
   reference's photometric depth is checked forward-backward against its sources' photometric maps
   (:mod:`colmap_pvs.consistency`), consulting only the sources the network found visible; pixels that
   agree with fewer than ``geom_min_consistent`` sources are set invalid, the rest are averaged with
-  the agreeing sources' depths. Writes ``NAME.geometric.bin`` depth, normal and confidence maps.
+  the agreeing sources' depths. Writes ``NAME.geometric.bin`` depth, normal and confidence maps. With
+  ``geom_reestimate`` the depth that passes this check first becomes dense hints of a second network
+  run on the reference, and that re-estimate is what is checked (COLMAP's geometric PatchMatch
+  re-estimates each reference with its sources' photometric maps, too).
 
 Every output group has a provenance file ``stereo/provenance/NAME.KIND.json`` (the resolved settings
 that affect that pass, the checkpoint's sha256 and, for the geometric pass, the photometric
@@ -107,6 +110,7 @@ GEOMETRIC_SETTINGS = (
     "geom_num_sources",
     "geom_average_depth",
     "geom_min_confidence",
+    "geom_reestimate",
 )
 #: Settings that change the dense completion (with the geometric fingerprints it reads).
 FILLED_SETTINGS = (
@@ -263,6 +267,14 @@ class StereoConfig:
     geom_min_confidence: float = field(
         default=0.0,
         metadata={"help": "geometric pass: pixels with geometric confidence below this are invalid"},
+    )
+    geom_reestimate: bool = field(
+        default=False,
+        metadata={
+            "help": "geometric pass: run the network again on each reference with the depth its sources' "
+            "photometric maps agree on as dense hints, then check that re-estimate (more pixels kept, "
+            "one more network run per image)"
+        },
     )
     geom_fill: bool = field(
         default=True,
@@ -835,17 +847,27 @@ def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, se
         timings["previews"] = time.perf_counter() - t0
 
 
-def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
-    cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
-    sources, reason = ctx.sources_of(name)
-    if sources is None:
-        return RefOutcome(name, "photometric", "skipped", reason)
+@dataclass
+class NetworkMaps:
+    """One network run on a reference, at the map size ``[H, W]``: ``depth`` (0 = invalid),
+    ``normals`` ``[H, W, 3]``, ``confidence`` and the coarse learned visibility ``[S, h/4, w/4]``."""
+
+    depth: np.ndarray
+    normals: np.ndarray
+    confidence: np.ndarray
+    visibility: np.ndarray
+
+
+def _network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dict[str, float],
+                  dense_hints: np.ndarray | None = None) -> NetworkMaps | str:
+    """The network's maps of ``name`` with ``sources`` (its photometric pass), or the reason it could
+    not run (out of memory).
+
+    ``dense_hints`` ``[H, W]`` (map size, 0 = none): depths that replace the SfM hints where they are
+    set (the geometric pass's re-estimation, ``geom_reestimate``); SfM hints stay elsewhere.
+    """
+    cfg = ctx.config
     size = ctx.map_size(name)
-    settings = photometric_settings(ctx, name, sources)
-    if not cfg.overwrite and _is_current(ws, name, "photometric", _fingerprint(settings), size):
-        return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     names = [name, *sources]
     net_size = ctx.network_size(name)
@@ -855,14 +877,24 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
     Ks = np.stack([ctx.map_K(n, net_size) for n in names])
     # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
     poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
-    timings["load"] = time.perf_counter() - t0
+    timings["load"] = timings.get("load", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     w, h = net_size
     ref = ctx.sparse.image_by_name(name)
     sparse = _sparse_depth_map(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
     entry = ctx.selection.references[name]
     drop_outlier_hints(sparse, entry.depth_range)
-    timings["prior"] = time.perf_counter() - t0
+    if dense_hints is not None:
+        if dense_hints.shape != (size[1], size[0]):
+            raise ShapeError(
+                f"dense_hints of {name!r} must be [{size[1]}, {size[0]}], got {dense_hints.shape}"
+            )
+        if net_size != size:  # nearest: a hint is a depth, never an average across an edge
+            import cv2
+
+            dense_hints = cv2.resize(dense_hints, (w, h), interpolation=cv2.INTER_NEAREST)
+        sparse = np.where(dense_hints > 0, dense_hints, sparse).astype(np.float32)
+    timings["prior"] = timings.get("prior", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
         if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
@@ -874,7 +906,7 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
             raise
         reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
         logger.error("skipping %s: %s (%s)", name, reason, exc)
-        return RefOutcome(name, "photometric", "skipped", reason)
+        return reason
     timings["network"] = time.perf_counter() - t0
     conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     if guide is not None:  # back to the map size along the image's edges
@@ -899,9 +931,27 @@ def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
     normals = depth_to_normals(depth, ctx.map_K(name, size))
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     timings["normals"] = time.perf_counter() - t0
+    return NetworkMaps(depth, normals, conf, vis)
+
+
+def _photometric(ctx: StereoContext, name: str) -> RefOutcome:
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    sources, reason = ctx.sources_of(name)
+    if sources is None:
+        return RefOutcome(name, "photometric", "skipped", reason)
+    size = ctx.map_size(name)
+    settings = photometric_settings(ctx, name, sources)
+    if not cfg.overwrite and _is_current(ws, name, "photometric", _fingerprint(settings), size):
+        return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
+    maps = _network_maps(ctx, name, sources, timings)
+    if isinstance(maps, str):
+        return RefOutcome(name, "photometric", "skipped", maps)
+    entry = ctx.selection.references[name]
     extra = {"image_size": list(size), "sources": sources}
-    ctx.submit_write(_write_pass, ws, name, "photometric", depth, normals, conf, settings, extra,
-                     cfg.previews, entry.depth_range, timings, vis, sources)
+    ctx.submit_write(_write_pass, ws, name, "photometric", maps.depth, maps.normals, maps.confidence,
+                     settings, extra, cfg.previews, entry.depth_range, timings, maps.visibility, sources)
     return RefOutcome(name, "photometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 
@@ -953,6 +1003,19 @@ def _load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
     h, w = depth.shape
     T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
     return SourceMaps(depth, normal_map, ctx.map_K(name, (w, h)), T)
+
+
+def _check_visibility(coarse: np.ndarray, network_sources: list[str], sources: list[str],
+                      size: tuple[int, int]) -> np.ndarray | None:
+    """``[S, H, W]`` learned visibility of each of ``sources`` for the check, from the network's
+    ``coarse`` ``[len(network_sources), h, w]`` maps upsampled to ``size`` ``(H, W)``; a source the
+    network did not see counts as visible. ``None`` when ``coarse`` does not match the network's sources."""
+    if coarse.shape[0] != len(network_sources):
+        return None
+    h, w = size
+    up = resize_bilinear(np.ascontiguousarray(coarse, dtype=np.float32), h, w)
+    ones = np.ones((h, w), np.float32)
+    return np.stack([up[network_sources.index(s)] if s in network_sources else ones for s in sources])
 
 
 def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
@@ -1007,19 +1070,29 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     if vis_path.is_file():
         coarse = read_array(vis_path)
         coarse = coarse[..., None] if coarse.ndim == 2 else coarse
-        if coarse.shape[2] == len(all_sources):  # views the network did not see count as visible
-            up = resize_bilinear(np.ascontiguousarray(coarse.transpose(2, 0, 1)), h, w)
-            ones = np.ones((h, w), np.float32)
-            vis = np.stack([up[all_sources.index(s)] if s in all_sources else ones for s in sources])
+        vis = _check_visibility(coarse.transpose(2, 0, 1), all_sources, sources, (h, w))
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = check_consistency(
-        ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis,
-        max_reproj_error=cfg.geom_max_reproj_error,
-        max_depth_error=cfg.geom_max_depth_error,
-        max_normal_error=cfg.geom_max_normal_error,
-        min_visibility=cfg.geom_min_visibility,
-    )
+    check = {"max_reproj_error": cfg.geom_max_reproj_error, "max_depth_error": cfg.geom_max_depth_error,
+             "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility}
+    reestimated = False
+    if cfg.geom_reestimate and all_sources:
+        # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;
+        # here the depth they agree on becomes dense hints of a second network run (the coarse planes
+        # centred on it, the cost modulated around it), whose maps are then checked as below.
+        first = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+        agreed = (ref.depth > 0) & (first.count >= cfg.geom_min_consistent)
+        hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
+        del first
+        timings["reestimate_hints"] = time.perf_counter() - t0
+        maps = _network_maps(ctx, name, all_sources, timings, dense_hints=hints)
+        if isinstance(maps, str):
+            return RefOutcome(name, "geometric", "skipped", maps)
+        ref = SourceMaps(maps.depth, maps.normals, ref.K, ref.cam_from_world)
+        vis = _check_visibility(maps.visibility, all_sources, sources, (h, w))
+        reestimated = True
+        t0 = time.perf_counter()
+    res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
     count = res.count
     keep = (ref.depth > 0) & (count >= cfg.geom_min_consistent)
     depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
@@ -1039,7 +1112,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
-             "kept_fraction": float(keep.mean())}
+             "kept_fraction": float(keep.mean()), "reestimated": reestimated}
     ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
                      dr, timings)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)

@@ -386,6 +386,76 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), geo)
 
 
+def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scene, tmp_path, tiny_checkpoint,
+                                                                    monkeypatch):
+    """``geom_reestimate``: the depth the sources' photometric maps agree on reaches a second network run
+    as dense hints, and that run's depth (not the photometric map) is what the check keeps."""
+    from scenes import render_view
+
+    from colmap_pvs.io.maps import write_depth_map, write_normal_map
+
+    ws = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], ws)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
+                       min_confidence=0.0, geom_consistency=False)
+    run_stereo(cfg)
+    names, model = analytic_scene["names"], analytic_scene["model"]
+    exact = {}
+    for name in names:  # exact photometric maps, but a block of the reference 10 % too far
+        view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
+                           model.image_by_name(name).cam_from_world, 160, 120)
+        exact[name] = view["depth"].astype(np.float32)
+        depth = exact[name].copy()
+        if name == names[0]:
+            depth[40:70, 60:100] *= 1.1
+        write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
+        write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
+    calls = []
+    real = stereo_module.estimate_depth
+
+    def network(net, images, intrinsics, poses, depth_range, sparse_depth, device):
+        """The tiny network's outputs, but the exact depth of the view (a network that gets it right)."""
+        depth, conf, vis, prior = real(net, images, intrinsics, poses, depth_range, sparse_depth, device)
+        name = next(n for n in names if np.allclose(poses[0][:3], model.image_by_name(n).cam_from_world))
+        calls.append((name, sparse_depth.copy()))
+        assert depth.shape == exact[name].shape
+        return exact[name].copy(), conf, vis, prior
+
+    monkeypatch.setattr(stereo_module, "estimate_depth", network)
+    ref = names[0]
+    block = np.zeros((120, 160), bool)
+    block[40:70, 60:100] = True
+    plain = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True))
+    assert stereo_module.process_reference(plain, ref, "geometric").status == "computed"
+    plain.close()
+    assert calls == []  # off by default: no second network run
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    assert (geo[block] > 0).mean() < 0.02
+    re_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_reestimate=True)
+    ctx = stereo_module.prepare_stereo(re_cfg)
+    out = stereo_module.process_reference(ctx, ref, "geometric")
+    ctx.close()
+    assert out.status == "computed" and {"reestimate_hints", "network"} <= set(out.timings)
+    assert [c[0] for c in calls] == [ref]
+    hints = calls[0][1]
+    # Outside the block the hints are the agreed (averaged) depth, dense; inside only SfM points remain.
+    outside = ~block & (exact[ref] > 0)
+    assert (hints[outside] > 0).mean() > 0.4 and (hints[block] > 0).mean() < 0.1
+    has = outside & (hints > 0)
+    np.testing.assert_allclose(hints[has], exact[ref][has], rtol=0.03)
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    assert (geo[block] > 0).mean() > 0.5  # the re-estimate is right there, and its sources agree
+    np.testing.assert_allclose(geo[geo > 0], exact[ref][geo > 0], rtol=0.03)
+    prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
+    assert prov["reestimated"] is True and prov["settings"]["geom_reestimate"] is True
+    # A rerun keeps it; the setting is a geometric one: switching it back recomputes that pass only.
+    res = run_stereo(re_cfg)
+    assert res.processed == [] and ref in res.geometric_done
+    res = run_stereo(dataclasses.replace(re_cfg, geom_reestimate=False))
+    assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
+    assert (read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")[block] > 0).mean() < 0.02
+
+
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,
                                                                      monkeypatch):
     ws = _copy(synthetic_ws, tmp_path)
