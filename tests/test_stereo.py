@@ -491,6 +491,41 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
     assert all(tuple(s) == (30, 40) for s, _, _ in seen)
 
 
+def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_size(
+        synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+    """With ``network_scale`` the re-estimate's dense hints are resized to the network input, and add
+    to the SfM hints; the geometric maps stay at the map size."""
+    ws = _copy(synthetic_ws, tmp_path)
+    seen: dict[str, list[np.ndarray]] = {"photometric": [], "geometric": []}
+    stage = ["photometric"]
+    real = stereo_module.estimate_depth
+
+    def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
+        seen[stage[0]].append((poses[0].tobytes(), sparse_depth.copy()))
+        return real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
+
+    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                       min_confidence=0.0, network_scale=0.5, network_min_size=16, geom_max_depth_error=0.5,
+                       geom_max_reproj_error=50.0, geom_min_visibility=0.0, geom_fill=False)
+    run_stereo(cfg)
+    assert seen["geometric"] == []
+    stage[0] = "geometric"
+    res = run_stereo(dataclasses.replace(cfg, geom_reestimate=True))
+    names = sorted(res.geometric_processed)
+    assert res.processed == [] and len(names) == 4 and len(seen["geometric"]) == 4  # one run per reference
+    assert "geometric.network" in res.timings
+    sfm_only = dict(seen["photometric"])
+    for pose, hints in seen["geometric"]:
+        assert hints.shape == sfm_only[pose].shape == (24, 32)
+        # the loose check keeps most pixels: dense hints where the SfM points left gaps, SfM hints kept
+        assert (hints > 0).mean() > (sfm_only[pose] > 0).mean() + 0.05
+        assert np.all(hints[sfm_only[pose] > 0] > 0)
+    ws_obj, _ = load_workspace(ws)
+    for name in names:
+        assert read_depth_map(ws_obj.depth_map_path(name, "geometric")).shape == (48, 64)
+
+
 def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_path, tiny_checkpoint,
                                                            monkeypatch):
     """A flat image takes the sparse prior's depth; a network far from the prior loses its confidence."""
