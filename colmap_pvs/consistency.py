@@ -91,12 +91,15 @@ def check_consistency(
     max_depth_error: float = 0.01,
     max_normal_error: float = 180.0,
     min_visibility: float = 0.0,
+    workers: int = 1,
 ) -> ConsistencyResult:
     """Forward-backward consistency of ``ref_depth`` ``[H, W]`` with each source map.
 
     Args:
         ref_normals: ``[H, W, 3]`` or ``None``; K: ``[3, 3]``; cam_from_world: ``[3|4, 4]``.
         visibility: ``[S, H, W]`` learned visibility of each source in ``[0, 1]`` (``None``: all 1).
+        workers: sources checked at once in threads (numpy releases the GIL in its array loops;
+            each source writes only its own slice of the outputs, so the result does not depend on it).
     """
     ref_depth = np.asarray(ref_depth, np.float32)
     if ref_depth.ndim != 2:
@@ -124,7 +127,8 @@ def check_consistency(
     use_normals = max_normal_error < 180.0 and ref_normals is not None
     if use_normals:
         n_ref = np.asarray(ref_normals, np.float64)[valid]
-    for s, src in enumerate(sources):
+
+    def one(s: int, src: SourceMaps) -> None:
         T_src = np.eye(4)
         T_src[:3] = np.asarray(src.cam_from_world, np.float64)[:3]
         T_rel = T_src @ np.linalg.inv(T_ref)  # ref camera -> source camera
@@ -177,4 +181,14 @@ def check_consistency(
         reproj[s][valid] = err
         derr[s][valid] = rel
         zrep[s][valid] = np.where(ok, zb, 0.0)
+
+    if workers > 1 and S > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(min(workers, S), thread_name_prefix="consistency") as pool:
+            for f in [pool.submit(one, s, src) for s, src in enumerate(sources)]:
+                f.result()
+    else:
+        for s, src in enumerate(sources):
+            one(s, src)
     return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax)

@@ -1074,7 +1074,8 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     check = {"max_reproj_error": cfg.geom_max_reproj_error, "max_depth_error": cfg.geom_max_depth_error,
-             "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility}
+             "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility,
+             "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
     reestimated = False
     if cfg.geom_reestimate and all_sources:
         # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;

@@ -101,3 +101,16 @@ def test_affine_row_is_one_row_of_the_affine_map():
     M, b, X = rng.normal(size=(3, 3)), rng.normal(size=3), rng.normal(size=(3, 50))
     rows = np.stack([affine_row(M[i], b[i], tuple(X)) for i in range(3)])
     np.testing.assert_allclose(rows, M @ X + b[:, None], rtol=1e-12, atol=1e-12)
+
+
+def test_sources_checked_in_threads_give_the_same_result(exact):
+    """``workers``: the sources are checked in threads, each writing its own slice; nothing changes."""
+    ref, srcs = exact[0], exact[1:]
+    bad = ref.depth.copy()
+    bad[30:60, 40:90] *= 1.05  # some pixels agree, some do not
+    kw = dict(max_normal_error=30.0, max_depth_error=0.02)
+    one = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs, **kw)
+    many = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs, workers=3, **kw)
+    assert one.agree.any() and not one.agree.all()
+    for field in ("agree", "checked", "reproj_error", "depth_error", "reprojected_depth", "parallax"):
+        np.testing.assert_array_equal(getattr(many, field), getattr(one, field), err_msg=field)
