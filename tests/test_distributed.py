@@ -350,3 +350,26 @@ def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_pat
     assert (tmp_path / "ray" / "stereo" / "adapt" / "adapted.pt").is_file()
     for f in sorted((tmp_path / "local" / "stereo" / "depth_maps").glob("*.bin")):
         assert (tmp_path / "ray" / "stereo" / "depth_maps" / f.name).read_bytes() == f.read_bytes(), f.name
+
+
+def test_ray_geometric_reestimate_matches_the_local_run(ray_cluster, scene, tmp_path):
+    """``geom_reestimate`` (a network run inside the geometric pass) on Ray workers: the same maps as a
+    local run of it, resumed from the photometric maps of the local run without the re-estimate."""
+    import torch
+
+    local = tmp_path / "local"
+    shutil.copytree(scene["local"], local)
+    threads = torch.get_num_threads()
+    try:
+        res = run_stereo(_config(local, scene["ckpt"], backend="local", threads=1, geom_reestimate=True))
+    finally:
+        torch.set_num_threads(threads)
+    assert res.processed == [] and len(res.geometric_processed) == 8 and "geometric.network" in res.timings
+    ws = tmp_path / "ws"
+    shutil.copytree(scene["local"], ws)
+    result = run_stereo(_config(ws, scene["ckpt"], geom_reestimate=True))
+    assert len(result.already_done) == 8 and result.retried == {}
+    _assert_same_maps(ws, local)
+    prov = json.loads((ws / "stereo" / "provenance" / f"{sorted(result.already_done)[0]}.geometric.json")
+                      .read_text())
+    assert prov["reestimated"] is True
