@@ -1086,7 +1086,9 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
         del first
         timings["reestimate_hints"] = time.perf_counter() - t0
-        maps = _network_maps(ctx, name, all_sources, timings, dense_hints=hints)
+        network_timings: dict[str, float] = {}
+        maps = _network_maps(ctx, name, all_sources, network_timings, dense_hints=hints)
+        timings.update({f"reestimate_{k}": v for k, v in network_timings.items()})
         if isinstance(maps, str):
             return RefOutcome(name, "geometric", "skipped", maps)
         ref = SourceMaps(maps.depth, maps.normals, ref.K, ref.cam_from_world)

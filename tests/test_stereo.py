@@ -435,7 +435,7 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     ctx = stereo_module.prepare_stereo(re_cfg)
     out = stereo_module.process_reference(ctx, ref, "geometric")
     ctx.close()
-    assert out.status == "computed" and {"reestimate_hints", "network"} <= set(out.timings)
+    assert out.status == "computed" and {"reestimate_hints", "reestimate_network"} <= set(out.timings)
     assert [c[0] for c in calls] == [ref]
     hints = calls[0][1]
     # Outside the block the hints are the agreed (averaged) depth, dense; inside only SfM points remain.
@@ -514,7 +514,7 @@ def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_
     res = run_stereo(dataclasses.replace(cfg, geom_reestimate=True))
     names = sorted(res.geometric_processed)
     assert res.processed == [] and len(names) == 4 and len(seen["geometric"]) == 4  # one run per reference
-    assert "geometric.network" in res.timings
+    assert "geometric.reestimate_network" in res.timings
     sfm_only = dict(seen["photometric"])
     for pose, hints in seen["geometric"]:
         assert hints.shape == sfm_only[pose].shape == (24, 32)
