@@ -7,6 +7,7 @@ evaluation), for comparing checkpoints and stereo settings in a few minutes::
     python benchmarks/hololens_quick.py --tag tta30 --stereo adapt_steps=30
     python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag full   # the 60 refs
     python benchmarks/hololens_quick.py --tag base --resume --stereo geom_fill_segments=false
+    python benchmarks/hololens_quick.py --tag base --resume --stereo geom_reestimate=true   # photometric kept
     python benchmarks/hololens_quick.py --tag all --all_references --stereo adapt_steps=60 \
         adapt_pseudo_labels=filled   # every frame a reference; then --offset 1 --resume: the check
 
