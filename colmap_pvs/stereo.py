@@ -52,7 +52,7 @@ from .completion import complete_depth, completed_confidence, plane_deviation, s
 from .config import atomic_write_bytes, config_to_dict, replace_config, save_config
 from .consistency import SourceMaps, check_consistency
 from .errors import CheckpointError, ColmapPVSError, ConfigError, MapFormatError, ShapeError, WorkspaceError
-from .evaluate import file_sha256
+from .evaluate import file_sha256, resize_nearest
 from .geometry import sparse_depth_map, to_homogeneous
 from .io.cleanup import remove_orphan_temps
 from .io.images import load_image, resize_image
@@ -877,7 +877,7 @@ def _network_maps(ctx: StereoContext, name: str, sources: list[str], timings: di
     Ks = np.stack([ctx.map_K(n, net_size) for n in names])
     # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
     poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
-    timings["load"] = timings.get("load", 0.0) + time.perf_counter() - t0
+    timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     w, h = net_size
     ref = ctx.sparse.image_by_name(name)
@@ -890,11 +890,9 @@ def _network_maps(ctx: StereoContext, name: str, sources: list[str], timings: di
                 f"dense_hints of {name!r} must be [{size[1]}, {size[0]}], got {dense_hints.shape}"
             )
         if net_size != size:  # nearest: a hint is a depth, never an average across an edge
-            import cv2
-
-            dense_hints = cv2.resize(dense_hints, (w, h), interpolation=cv2.INTER_NEAREST)
+            dense_hints = resize_nearest(dense_hints, h, w)
         sparse = np.where(dense_hints > 0, dense_hints, sparse).astype(np.float32)
-    timings["prior"] = timings.get("prior", 0.0) + time.perf_counter() - t0
+    timings["prior"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
         if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
@@ -1077,7 +1075,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
              "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility,
              "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
     reestimated = False
-    if cfg.geom_reestimate and all_sources:
+    if cfg.geom_reestimate and all_sources and entry is not None:
         # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;
         # here the depth they agree on becomes dense hints of a second network run (the coarse planes
         # centred on it, the cost modulated around it), whose maps are then checked as below.
