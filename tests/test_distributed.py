@@ -259,23 +259,27 @@ def _worker_pids(state: str) -> list[int]:
 def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
     """Kill the first worker seen running ``process`` (mid-task) with SIGKILL.
 
-    Once a worker exists, only its own process title is watched (one small read per check): a scan
-    of all of ``/proc`` can take longer than a whole task of the tiny network on a quiet machine.
+    Between scans of ``/proc`` (which can take longer than a whole task of the tiny network on a quiet
+    machine) only the known workers' own process titles are watched, one small read each; the scan is
+    repeated every 50 ms, so a worker left idle by an earlier run cannot hide the new run's worker.
     """
     while not stop.is_set():
-        for pid in _worker_pids("any"):
-            title = Path("/proc") / str(pid) / "cmdline"
-            while not stop.is_set():
+        titles = {pid: Path("/proc") / str(pid) / "cmdline" for pid in _worker_pids("any")}
+        rescan = time.monotonic() + 0.05
+        while titles and not stop.is_set() and time.monotonic() < rescan:
+            for pid, title in list(titles.items()):
                 try:
                     busy = title.read_bytes().startswith(b"ray::StereoWorker.process")
                 except OSError:  # that worker is gone
-                    break
+                    del titles[pid]
+                    continue
                 if busy:
                     os.kill(pid, signal.SIGKILL)
                     killed.append(pid)
                     return
-                time.sleep(0.001)
-        time.sleep(0.005)
+            time.sleep(0.001)
+        if not titles:
+            time.sleep(0.005)
 
 
 def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
