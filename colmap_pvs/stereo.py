@@ -87,7 +87,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 6, "filled": 2}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 7, "filled": 3}
 Stage = Literal["photometric", "geometric", "filled"]
 #: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
 GEOM_DEVIATION_SCALE = 0.02
@@ -111,6 +111,8 @@ GEOMETRIC_SETTINGS = (
     "geom_average_depth",
     "geom_min_confidence",
     "geom_reestimate",
+    "geom_seed_min_consistent",
+    "geom_seed_depth_error",
 )
 #: Settings that change the dense completion (with the geometric fingerprints it reads).
 FILLED_SETTINGS = (
@@ -276,6 +278,19 @@ class StereoConfig:
             "one more network run per image)"
         },
     )
+    geom_seed_min_consistent: int = field(
+        default=3,
+        metadata={
+            "help": "geometric pass: a kept pixel seeds the dense completion (stereo/seed_maps/NAME.bin) "
+            "where at least this many sources agree with it within geom_seed_depth_error and enough of "
+            "its neighbours do for a normal; the completion keeps only the seeds as they are"
+        },
+    )
+    geom_seed_depth_error: float = field(
+        default=0.025,
+        metadata={"help": "geometric pass: max relative depth error of the sources that make a seed "
+                  "(see geom_seed_min_consistent)"},
+    )
     geom_fill: bool = field(
         default=True,
         metadata={
@@ -312,6 +327,7 @@ class StereoConfig:
         check_range("geom_fill_min_sources", self.geom_fill_min_sources, low=1)
         check_range("geom_fill_segment_min_pixels", self.geom_fill_segment_min_pixels, low=3)
         check_range("geom_fill_segment_inliers", self.geom_fill_segment_inliers, low=0.0, high=1.0)
+        check_range("geom_seed_min_consistent", self.geom_seed_min_consistent, low=1)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
@@ -342,7 +358,8 @@ class StereoConfig:
             raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
         if self.geom_min_consistent < 1:
             raise ConfigError(f"geom_min_consistent must be >= 1, got {self.geom_min_consistent}")
-        for name in ("geom_max_reproj_error", "geom_max_depth_error", "geom_max_normal_error"):
+        for name in ("geom_max_reproj_error", "geom_max_depth_error", "geom_max_normal_error",
+                     "geom_seed_depth_error"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
 
@@ -740,6 +757,13 @@ def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
     return ws.stereo_dir / "provenance" / f"{name}.{stage}.json"
 
 
+def seed_map_path(ws: Workspace, name: str) -> Path:
+    """``stereo/seed_maps/NAME.bin``: per pixel of ``name``'s geometric map, the number of sources that
+    agree with it within ``geom_seed_depth_error`` where it seeds the dense completion, 0 elsewhere."""
+    ws.depth_map_path(name, "geometric")  # validates name
+    return ws.stereo_dir / "seed_maps" / f"{name}.bin"
+
+
 def _fingerprint(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
 
@@ -817,11 +841,12 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
-                depth_range, timings, vis=None, sources=()) -> None:
+                depth_range, timings, vis=None, sources=(), seeds=None) -> None:
     """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
     then its previews.
 
-    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``. Preview
+    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``,
+    ``seeds`` ``[h, w]`` (geometric pass only) to :func:`seed_map_path`. Preview
     names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
     t0 = time.perf_counter()
@@ -831,6 +856,8 @@ def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, se
     if vis is not None:
         write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
                     np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
+    if seeds is not None:
+        write_array(seed_map_path(ws, name), seeds.astype(np.float32))
     write_normal_map(ws.normal_map_path(name, stage), normals)
     _write_provenance(ws, name, stage, settings, extra)
     write_depth_map(ws.depth_map_path(name, stage), depth)  # last: marks the pass done
@@ -1053,7 +1080,8 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         sources={s: source_prov[s]["fingerprint"] for s in sources},
     )
     size = tuple(prov.get("image_size", ctx.map_size(name)))
-    if not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size):
+    if (not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size)
+            and seed_map_path(ws, name).is_file()):
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     if len(sources) < min(cfg.geom_min_consistent, len(prov.get("sources", []))) or not sources:
         return RefOutcome(name, "geometric", "skipped",
@@ -1110,12 +1138,19 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # The completion's seeds: kept pixels whose agreeing sources, counted again at a tighter tolerance,
+    # are enough, and not isolated (the map of the seeds alone still gives them a normal).
+    strict = np.where(depth > 0, (res.agree & (res.depth_error <= cfg.geom_seed_depth_error)).sum(0), 0)
+    seeds = np.where(strict >= cfg.geom_seed_min_consistent, depth, 0.0)
+    seeds = np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), strict, 0).astype(np.float32)
+    timings["seeds"] = time.perf_counter() - t0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
              "kept_fraction": float(keep.mean()), "reestimated": reestimated}
     ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
-                     dr, timings)
+                     dr, timings, None, (), seeds)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 
@@ -1128,6 +1163,14 @@ def _read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, in
     if conf.shape != shape:
         raise MapFormatError(f"confidence map {str(path)!r} is {conf.shape}, its depth map is {shape}")
     return conf
+
+
+def _read_seeds(ws: Workspace, name: str, shape: tuple[int, int]) -> np.ndarray:
+    path = seed_map_path(ws, name)
+    seeds = read_array(path)
+    if seeds.shape != shape:
+        raise MapFormatError(f"seed map {str(path)!r} is {seeds.shape}, its depth map is {shape}")
+    return seeds
 
 
 def remove_filled(ws: Workspace, name: str) -> None:
@@ -1147,7 +1190,8 @@ def _current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
         return None
     prov = read_provenance(ws, name, "geometric")
     photo = read_provenance(ws, name, "photometric")
-    if prov is None or photo is None or not ws.depth_map_path(name, "geometric").is_file():
+    if (prov is None or photo is None or not ws.depth_map_path(name, "geometric").is_file()
+            or not seed_map_path(ws, name).is_file()):
         return None
     settings = prov.get("settings", {})
     wanted = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
@@ -1171,7 +1215,8 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     start = time.perf_counter()
     timings: dict[str, float] = {}
     prov = read_provenance(ws, name, "geometric")
-    if prov is None or not ws.depth_map_path(name, "geometric").is_file():
+    if (prov is None or not ws.depth_map_path(name, "geometric").is_file()
+            or not seed_map_path(ws, name).is_file()):
         remove_filled(ws, name)
         return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
     entry = ctx.selection.references.get(name)
@@ -1191,6 +1236,9 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     t0 = time.perf_counter()
     ref = _load_maps(ctx, name, "geometric", normals=False)
     srcs = [_load_maps(ctx, s, "geometric", normals=False) for s in source_prov]
+    geometric_kept = ref.depth > 0
+    for n, maps in zip([name, *source_prov], [ref, *srcs], strict=True):  # only the seeds as they are
+        maps.depth = np.where(_read_seeds(ws, n, maps.depth.shape) > 0, maps.depth, 0.0).astype(np.float32)
     h, w = ref.depth.shape
     photo = read_depth_map(ws.depth_map_path(name, "photometric"))
     if photo.shape != (h, w):
@@ -1222,6 +1270,7 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
                                 segmented, inliers)
     timings["fit"] = time.perf_counter() - t0
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
+             "geometric_fraction": float(geometric_kept.mean()),
              "splatted_fraction": float((splatted & ~segmented).mean()),
              "segmented_fraction": float(segmented.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))

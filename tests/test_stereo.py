@@ -352,11 +352,16 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     filled = read_depth_map(maps / f"{ref}.filled.bin")
     filled_conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.filled.bin")
     assert np.all(filled > 0)
-    np.testing.assert_array_equal(filled[ok], geo[ok])
+    # Its seeds: the kept pixels with at least 3 sources within geom_seed_depth_error (most of them).
+    seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")
+    assert np.all(seed_map[~ok] == 0) and np.all(seed_map[seed_map > 0] >= cfg.geom_seed_min_consistent)
+    seeds = seed_map > 0
+    assert seeds.sum() > 0.5 * ok.sum()
+    np.testing.assert_array_equal(filled[seeds], geo[seeds])
     truth = photo[40:70, 60:100] / 1.1
     fitted_error = np.median(np.abs(filled[40:70, 60:100] / truth - 1))
     assert fitted_error < 0.07
-    assert filled_conf[ok].min() > filled_conf[~ok].max()
+    assert filled_conf[seeds].min() > filled_conf[~seeds].max()
     # With the other views' geometric maps, the block takes their kept depths (exact maps).
     for name in analytic_scene["names"][1:]:
         assert stereo_module.process_reference(ctx, name, "geometric").status == "computed"
@@ -366,7 +371,7 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     filled = read_depth_map(maps / f"{ref}.filled.bin")
     splat_error = np.median(np.abs(filled[40:70, 60:100] / truth - 1))
     assert splat_error < 0.005 and splat_error < fitted_error / 5
-    np.testing.assert_array_equal(filled[ok], geo[ok])
+    np.testing.assert_array_equal(filled[seeds], geo[seeds])
     assert stereo_module.process_reference(ctx, ref, "filled").status == "done"
     # A source's geometric maps from other settings (another run) are not read.
     other = analytic_scene["names"][1]
@@ -384,6 +389,54 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     assert not list(maps.glob("*.filled.bin"))
     assert not list((ws / "stereo" / "confidence_maps").glob("*.filled.bin"))
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), geo)
+
+
+def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analytic_scene, tmp_path,
+                                                                           tiny_checkpoint):
+    """A block of the reference 2.8 % too far passes the geometric check (3 %) but not the seeds' 2.5 %:
+    the completion fills it from the sources' exact maps, unless every kept pixel seeds it (``0``)."""
+    from scenes import render_view
+
+    from colmap_pvs.io.maps import write_depth_map, write_normal_map
+
+    ws = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], ws)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
+                       min_confidence=0.0, geom_consistency=False)
+    run_stereo(cfg)
+    names, model = analytic_scene["names"], analytic_scene["model"]
+    ref = names[0]
+    for name in names:
+        view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
+                           model.image_by_name(name).cam_from_world, 160, 120)
+        depth = view["depth"].astype(np.float32)
+        if name == ref:
+            truth = depth.copy()
+            depth[40:70, 60:100] *= 1.028
+        write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
+        write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
+    geo_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_average_depth=False)
+    run_stereo(geo_cfg)
+    maps = ws / "stereo" / "depth_maps"
+    geo = read_depth_map(maps / f"{ref}.geometric.bin")
+    block = np.zeros_like(geo, bool)
+    block[40:70, 60:100] = True
+    assert (geo[block] > 0).mean() > 0.3  # much of the block is kept by the geometric check ...
+    seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")
+    inner = block & (geo > 0)
+    assert (seed_map[inner] > 0).mean() < 0.3  # ... but few of its pixels are seeds (within 2.5 %)
+    assert (seed_map[~block & (geo > 0)] > 0).mean() > 0.6
+    filled = read_depth_map(maps / f"{ref}.filled.bin")
+    assert np.median(np.abs(filled[inner] / truth[inner] - 1)) < 0.005  # from the sources' exact maps
+    # Seeds at the check's own tolerance: (nearly) every kept pixel is one, the block stays as it is.
+    # The seed settings belong to the geometric pass: it is recomputed, then the completion.
+    res = run_stereo(dataclasses.replace(geo_cfg, geom_seed_min_consistent=1, geom_seed_depth_error=0.03))
+    assert sorted(res.geometric_processed) == sorted(names) and sorted(res.filled_processed) == sorted(names)
+    every = read_depth_map(maps / f"{ref}.filled.bin")
+    seeds = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin") > 0
+    assert seeds.sum() > 0.99 * (geo > 0).sum()
+    np.testing.assert_array_equal(every[seeds], geo[seeds])
+    assert np.median(np.abs(every[inner] / truth[inner] - 1)) > 0.025
 
 
 def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scene, tmp_path, tiny_checkpoint,
