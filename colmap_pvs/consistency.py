@@ -54,6 +54,8 @@ class ConsistencyResult:
         parallax: ``[S, H, W]`` float32 how far (pixels) the pixel's projection into source ``s``
             moves when its depth grows by :data:`PARALLAX_STEP` (0 where it does not project in
             front of the source): how much an agreement with that source says about the depth.
+        angle: ``[S, H, W]`` float32 triangulation angle (degrees) at the pixel's 3D point between
+            the rays from the reference's and source ``s``'s centres (0 on invalid pixels).
     """
 
     agree: np.ndarray
@@ -62,16 +64,26 @@ class ConsistencyResult:
     depth_error: np.ndarray
     reprojected_depth: np.ndarray
     parallax: np.ndarray
+    angle: np.ndarray
 
     @property
     def count(self) -> np.ndarray:
         """``[H, W]`` number of agreeing sources."""
         return self.agree.sum(0)
 
-    def mean_depth(self, ref_depth: np.ndarray) -> np.ndarray:
-        """``[H, W]`` mean of the reference depth and the agreeing sources' reprojected depths."""
-        num = ref_depth + np.where(self.agree, self.reprojected_depth, 0.0).sum(0)
-        return (num / (1.0 + self.count)).astype(np.float32)
+    def confirming(self, min_angle: float) -> np.ndarray:
+        """``[S, H, W]`` bool: agreeing sources whose triangulation :attr:`angle` is at least
+        ``min_angle`` degrees (COLMAP's ``filter_min_triangulation_angle``). Two views from nearly the
+        same place see the point along nearly the same ray, so their depths agree whether right or
+        wrong: such an agreement confirms nothing."""
+        return self.agree & (self.angle >= min_angle)
+
+    def mean_depth(self, ref_depth: np.ndarray, agree: np.ndarray | None = None) -> np.ndarray:
+        """``[H, W]`` mean of the reference depth and the reprojected depths of the agreeing sources
+        (``agree`` ``[S, H, W]``, default :attr:`agree`)."""
+        agree = self.agree if agree is None else agree
+        num = ref_depth + np.where(agree, self.reprojected_depth, 0.0).sum(0)
+        return (num / (1.0 + agree.sum(0))).astype(np.float32)
 
 
 #: Relative depth step of :attr:`ConsistencyResult.parallax` (the geometric pass's default
@@ -123,6 +135,9 @@ def check_consistency(
     derr = np.full(shape, np.inf, np.float32)
     zrep = np.zeros(shape, np.float32)
     parallax = np.zeros(shape, np.float32)
+    angle = np.zeros(shape, np.float32)
+    X = tuple(affine_row(row, 0.0, q) for row in Kinv_ref)  # the pixels' points, reference camera frame
+    X_norm = np.sqrt(X[0] ** 2 + X[1] ** 2 + X[2] ** 2)
     cos_max = np.cos(np.deg2rad(max_normal_error))
     use_normals = max_normal_error < 180.0 and ref_normals is not None
     if use_normals:
@@ -150,6 +165,12 @@ def check_consistency(
         ok = (z > 0) & np.isfinite(us) & np.isfinite(vs)
         far_z = (1 + PARALLAX_STEP) * (z - t[2]) + t[2]
         parallax[s][valid] = np.where(ok & (far_z > 0) & np.isfinite(moved), moved, 0.0)
+        centre = -R.T @ t  # the source's centre in the reference frame
+        ray = tuple(x - c for x, c in zip(X, centre, strict=True))
+        ray_norm = np.sqrt(ray[0] ** 2 + ray[1] ** 2 + ray[2] ** 2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cos = (X[0] * ray[0] + X[1] * ray[1] + X[2] * ray[2]) / (X_norm * ray_norm)
+        angle[s][valid] = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0)))
         col = np.floor(np.where(ok, us, -1)).astype(np.int64)
         row = np.floor(np.where(ok, vs, -1)).astype(np.int64)
         ok &= (col >= 0) & (col < ws_) & (row >= 0) & (row < hs)
@@ -191,4 +212,4 @@ def check_consistency(
     else:
         for s, src in enumerate(sources):
             one(s, src)
-    return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax)
+    return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax, angle)

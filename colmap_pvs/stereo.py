@@ -10,11 +10,17 @@ A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two pas
 - **geometric** (``geom_consistency``, on by default), once every photometric map exists: each
   reference's photometric depth is checked forward-backward against its sources' photometric maps
   (:mod:`colmap_pvs.consistency`), consulting only the sources the network found visible; pixels that
-  agree with fewer than ``geom_min_consistent`` sources are set invalid, the rest are averaged with
-  the agreeing sources' depths. Writes ``NAME.geometric.bin`` depth, normal and confidence maps. With
-  ``geom_reestimate`` the depth that passes this check first becomes dense hints of a second network
-  run on the reference, and that re-estimate is what is checked (COLMAP's geometric PatchMatch
-  re-estimates each reference with its sources' photometric maps, too).
+  fewer than ``geom_min_consistent`` sources confirm (agree with, seen at a triangulation angle of at
+  least ``geom_min_triangulation_angle``) are set invalid, the rest are averaged with the confirming
+  sources' depths. Writes ``NAME.geometric.bin`` depth, normal and confidence maps, and
+  ``stereo/seed_maps/NAME.bin``, the pixels that ``geom_seed_min_consistent`` sources agree with within
+  ``geom_seed_depth_error`` (the dense completion's seeds). With ``geom_reestimate`` the depth that
+  passes this check first becomes dense hints of a second network run on the reference, and that
+  re-estimate is what is checked (COLMAP's geometric PatchMatch re-estimates each reference with its
+  sources' photometric maps, too);
+- **filled** (``geom_fill``, on by default), once every geometric map exists: a dense completion
+  from the seeds of the reference and of its sources (:mod:`colmap_pvs.completion`),
+  ``NAME.filled.bin`` depth and confidence maps that COLMAP's fusion never reads.
 
 Every output group has a provenance file ``stereo/provenance/NAME.KIND.json`` (the resolved settings
 that affect that pass, the checkpoint's sha256 and, for the geometric pass, the photometric
@@ -107,6 +113,7 @@ GEOMETRIC_SETTINGS = (
     "geom_max_depth_error",
     "geom_max_normal_error",
     "geom_min_visibility",
+    "geom_min_triangulation_angle",
     "geom_num_sources",
     "geom_average_depth",
     "geom_min_confidence",
@@ -254,6 +261,14 @@ class StereoConfig:
         default=0.2,
         metadata={"help": "geometric pass: consult a source only where its learned visibility >= this"},
     )
+    geom_min_triangulation_angle: float = field(
+        default=2.2,
+        metadata={
+            "help": "geometric pass: a source confirms a pixel only where the rays from its centre and "
+            "the reference's meet at the pixel's point at this angle (degrees) or more (COLMAP's "
+            "filter_min_triangulation_angle; 0: any)"
+        },
+    )
     geom_num_sources: int = field(
         default=10,
         metadata={
@@ -281,9 +296,9 @@ class StereoConfig:
     geom_seed_min_consistent: int = field(
         default=3,
         metadata={
-            "help": "geometric pass: a kept pixel seeds the dense completion (stereo/seed_maps/NAME.bin) "
-            "where at least this many sources agree with it within geom_seed_depth_error and enough of "
-            "its neighbours do for a normal; the completion keeps only the seeds as they are"
+            "help": "geometric pass: a pixel seeds the dense completion (stereo/seed_maps/NAME.bin) where "
+            "at least this many sources agree with it within geom_seed_depth_error (at any angle) and "
+            "enough of its neighbours do for a normal; the completion keeps only the seeds as they are"
         },
     )
     geom_seed_depth_error: float = field(
@@ -350,6 +365,7 @@ class StereoConfig:
                     f"maps: geom_consistency={self.geom_consistency}, geom_fill={self.geom_fill}"
                 )
         check_range("geom_min_visibility", self.geom_min_visibility, low=0.0, high=1.0)
+        check_range("geom_min_triangulation_angle", self.geom_min_triangulation_angle, low=0.0, high=90.0)
         check_range("geom_num_sources", self.geom_num_sources, low=0)
         for name, low in (("ray_workers", 0), ("ray_worker_threads", 1), ("ray_worker_memory", 0.0),
                           ("ray_max_retries", 0), ("ray_task_timeout", 0.0)):
@@ -758,8 +774,8 @@ def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
 
 
 def seed_map_path(ws: Workspace, name: str) -> Path:
-    """``stereo/seed_maps/NAME.bin``: per pixel of ``name``'s geometric map, the number of sources that
-    agree with it within ``geom_seed_depth_error`` where it seeds the dense completion, 0 elsewhere."""
+    """``stereo/seed_maps/NAME.bin``: the depth of the pixels of ``name`` that seed its dense completion
+    (at least ``geom_seed_min_consistent`` sources agree within ``geom_seed_depth_error``), 0 elsewhere."""
     ws.depth_map_path(name, "geometric")  # validates name
     return ws.stereo_dir / "seed_maps" / f"{name}.bin"
 
@@ -1122,13 +1138,13 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         reestimated = True
         t0 = time.perf_counter()
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    count = res.count
-    keep = (ref.depth > 0) & (count >= cfg.geom_min_consistent)
-    depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth.copy()
+    confirm = res.confirming(cfg.geom_min_triangulation_angle)  # agreeing, from far enough apart
+    keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geom_min_consistent)
+    depth = res.mean_depth(ref.depth, confirm) if cfg.geom_average_depth else ref.depth.copy()
     timings["consistency"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = np.where(keep, depth, 0.0).astype(np.float32)
-    conf = geometric_confidence(res.agree, vis, plane_deviation(depth), res.parallax)
+    conf = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
     keep &= conf >= cfg.geom_min_confidence
     depth[~keep] = 0.0
     conf = np.where(keep, conf, 0.0).astype(np.float32)
@@ -1139,11 +1155,13 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    # The completion's seeds: kept pixels whose agreeing sources, counted again at a tighter tolerance,
-    # are enough, and not isolated (the map of the seeds alone still gives them a normal).
-    strict = np.where(depth > 0, (res.agree & (res.depth_error <= cfg.geom_seed_depth_error)).sum(0), 0)
-    seeds = np.where(strict >= cfg.geom_seed_min_consistent, depth, 0.0)
-    seeds = np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), strict, 0).astype(np.float32)
+    # The completion's seeds: pixels that enough sources confirm within a tighter depth tolerance
+    # (at any angle: the completion is better off with the narrow-baseline agreement of a video than
+    # without it), not isolated (the map of the seeds alone still gives them a normal).
+    strict = (res.agree & (res.depth_error <= cfg.geom_seed_depth_error)).sum(0)
+    seed_depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth
+    seeds = np.where((ref.depth > 0) & (strict >= cfg.geom_seed_min_consistent), seed_depth, 0.0)
+    seeds = np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), seeds, 0.0).astype(np.float32)
     timings["seeds"] = time.perf_counter() - t0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
@@ -1237,8 +1255,8 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     ref = _load_maps(ctx, name, "geometric", normals=False)
     srcs = [_load_maps(ctx, s, "geometric", normals=False) for s in source_prov]
     geometric_kept = ref.depth > 0
-    for n, maps in zip([name, *source_prov], [ref, *srcs], strict=True):  # only the seeds as they are
-        maps.depth = np.where(_read_seeds(ws, n, maps.depth.shape) > 0, maps.depth, 0.0).astype(np.float32)
+    for n, maps in zip([name, *source_prov], [ref, *srcs], strict=True):  # the seeds are what is known
+        maps.depth = _read_seeds(ws, n, maps.depth.shape)
     h, w = ref.depth.shape
     photo = read_depth_map(ws.depth_map_path(name, "photometric"))
     if photo.shape != (h, w):

@@ -73,6 +73,39 @@ def test_parallax_is_how_far_a_depth_step_moves_the_projection(exact):
     assert not res.parallax[:, ref.depth <= 0].any()
 
 
+def test_a_source_confirms_only_from_a_wide_enough_triangulation_angle(exact):
+    """``angle`` is the angle between the rays from the two centres to the pixel's point (computed here
+    independently). A source at the reference's own centre agrees with every depth but confirms none;
+    a real source confirms where its angle is enough, and the mean depth can use just those."""
+    ref, src = exact[0], exact[1]
+    same_centre = SourceMaps(ref.depth, ref.normals, ref.K, ref.cam_from_world)
+    res = _check(ref, [src, same_centre])
+    rows, cols = np.nonzero(ref.depth > 0)
+    rows, cols = rows[::97], cols[::97]
+    d = ref.depth[rows, cols].astype(np.float64)
+    X_cam = np.linalg.inv(ref.K) @ np.stack([(cols + 0.5) * d, (rows + 0.5) * d, d])
+    R, t = ref.cam_from_world[:3, :3], ref.cam_from_world[:3, 3:]
+    X = R.T @ (X_cam - t)  # world
+    centres = [-(m[:3, :3].T @ m[:3, 3:]) for m in (ref.cam_from_world, src.cam_from_world)]
+    a, b = X - centres[0], X - centres[1]
+    expected = np.degrees(np.arccos(np.sum(a * b, 0) / np.linalg.norm(a, axis=0) / np.linalg.norm(b, axis=0)))
+    np.testing.assert_allclose(res.angle[0][rows, cols], expected, atol=1e-3)
+    assert expected.min() > 1.0 and np.abs(res.angle[1]).max() < 1e-3
+    assert res.agree[1][ref.depth > 0].mean() > 0.99  # it agrees with anything at all
+    angle = float(np.median(res.angle[0][res.agree[0]]))
+    confirm = res.confirming(angle)
+    assert not confirm[1].any()
+    np.testing.assert_array_equal(confirm[0], res.agree[0] & (res.angle[0] >= angle))
+    assert 0.3 < confirm[0].sum() / res.agree[0].sum() < 0.7
+    np.testing.assert_array_equal(res.confirming(0.0), res.agree)
+    both = confirm[0] & res.agree[1]
+    expected = (ref.depth + res.reprojected_depth[0]) / 2
+    np.testing.assert_allclose(res.mean_depth(ref.depth, confirm)[both], expected[both], rtol=1e-6)
+    np.testing.assert_allclose(res.mean_depth(ref.depth)[both],
+                               (ref.depth + res.reprojected_depth[0] + res.reprojected_depth[1])[both] / 3,
+                               rtol=1e-6)
+
+
 def test_learned_visibility_chooses_the_views_checked(exact):
     ref, srcs = exact[0], exact[1:]
     H, W = ref.depth.shape
