@@ -392,30 +392,40 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), geo)
 
 
-def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analytic_scene, tmp_path,
-                                                                           tiny_checkpoint):
-    """A block of the reference 2.8 % too far passes the geometric check (3 %) but not the seeds' 2.5 %:
-    the completion fills it from the sources' exact maps, unless every kept pixel seeds it (``0``)."""
+def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
+    """A copy of the analytic scene after a photometric-only run, its photometric maps replaced by the
+    exact ones, but a block of the first view's depth ``factor`` times too far. Returns the workspace,
+    that run's config and the exact depths by name."""
     from scenes import render_view
 
     from colmap_pvs.io.maps import write_depth_map, write_normal_map
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
+    cfg = StereoConfig(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0,
                        min_confidence=0.0, geom_consistency=False)
     run_stereo(cfg)
     names, model = analytic_scene["names"], analytic_scene["model"]
-    ref = names[0]
+    exact = {}
     for name in names:
         view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
                            model.image_by_name(name).cam_from_world, 160, 120)
-        depth = view["depth"].astype(np.float32)
-        if name == ref:
-            truth = depth.copy()
-            depth[40:70, 60:100] *= 1.028
+        exact[name] = view["depth"].astype(np.float32)
+        depth = exact[name].copy()
+        if name == names[0]:
+            depth[40:70, 60:100] *= factor
         write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
         write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
+    return ws, cfg, exact
+
+
+def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analytic_scene, tmp_path,
+                                                                           tiny_checkpoint):
+    """A block of the reference 2.8 % too far passes the geometric check (3 %) but not the seeds' 2.5 %:
+    the completion fills it from the sources' exact maps, unless every kept pixel seeds it."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.028)
+    names = analytic_scene["names"]
+    ref, truth = names[0], exact[names[0]]
     geo_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_average_depth=False)
     run_stereo(geo_cfg)
     maps = ws / "stereo" / "depth_maps"
@@ -446,26 +456,9 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
                                                                     monkeypatch):
     """``geom_reestimate``: the depth the sources' photometric maps agree on reaches a second network run
     as dense hints, and that run's depth (not the photometric map) is what the check keeps."""
-    from scenes import render_view
-
-    from colmap_pvs.io.maps import write_depth_map, write_normal_map
-
-    ws = tmp_path / "ws"
-    shutil.copytree(analytic_scene["root"], ws)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
-                       min_confidence=0.0, geom_consistency=False)
-    run_stereo(cfg)
+    # exact photometric maps, but a block of the reference 10 % too far
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
     names, model = analytic_scene["names"], analytic_scene["model"]
-    exact = {}
-    for name in names:  # exact photometric maps, but a block of the reference 10 % too far
-        view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
-                           model.image_by_name(name).cam_from_world, 160, 120)
-        exact[name] = view["depth"].astype(np.float32)
-        depth = exact[name].copy()
-        if name == names[0]:
-            depth[40:70, 60:100] *= 1.1
-        write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
-        write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
     calls = []
     real = stereo_module.estimate_depth
 
