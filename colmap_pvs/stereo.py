@@ -780,6 +780,11 @@ def seed_map_path(ws: Workspace, name: str) -> Path:
     return ws.stereo_dir / "seed_maps" / f"{name}.bin"
 
 
+def _geometric_files_exist(ws: Workspace, name: str) -> bool:
+    """The geometric pass of ``name`` left its depth map and its seed map (the completion reads both)."""
+    return ws.depth_map_path(name, "geometric").is_file() and seed_map_path(ws, name).is_file()
+
+
 def _fingerprint(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
 
@@ -1032,10 +1037,11 @@ def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
 
 
 def _load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
-               normals: bool = True) -> SourceMaps:
-    """``name``'s ``kind`` depth map (and normal map, with ``normals``), intrinsics and pose."""
+               normals: bool = True, depth_path: Path | None = None) -> SourceMaps:
+    """``name``'s ``kind`` depth map (or the depth map at ``depth_path``; and its ``kind`` normal map,
+    with ``normals``), intrinsics and pose."""
     ws = ctx.workspace
-    depth = read_depth_map(ws.depth_map_path(name, kind))
+    depth = read_depth_map(ws.depth_map_path(name, kind) if depth_path is None else depth_path)
     normal_map = read_normal_map(ws.normal_map_path(name, kind)) if normals else None
     if normal_map is not None and normal_map.shape[:2] != depth.shape:
         raise MapFormatError(
@@ -1097,7 +1103,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     )
     size = tuple(prov.get("image_size", ctx.map_size(name)))
     if (not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size)
-            and seed_map_path(ws, name).is_file()):
+            and _geometric_files_exist(ws, name)):
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     if len(sources) < min(cfg.geom_min_consistent, len(prov.get("sources", []))) or not sources:
         return RefOutcome(name, "geometric", "skipped",
@@ -1183,14 +1189,6 @@ def _read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, in
     return conf
 
 
-def _read_seeds(ws: Workspace, name: str, shape: tuple[int, int]) -> np.ndarray:
-    path = seed_map_path(ws, name)
-    seeds = read_array(path)
-    if seeds.shape != shape:
-        raise MapFormatError(f"seed map {str(path)!r} is {seeds.shape}, its depth map is {shape}")
-    return seeds
-
-
 def remove_filled(ws: Workspace, name: str) -> None:
     """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done)."""
     for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
@@ -1208,8 +1206,7 @@ def _current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
         return None
     prov = read_provenance(ws, name, "geometric")
     photo = read_provenance(ws, name, "photometric")
-    if (prov is None or photo is None or not ws.depth_map_path(name, "geometric").is_file()
-            or not seed_map_path(ws, name).is_file()):
+    if prov is None or photo is None or not _geometric_files_exist(ws, name):
         return None
     settings = prov.get("settings", {})
     wanted = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
@@ -1233,8 +1230,7 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     start = time.perf_counter()
     timings: dict[str, float] = {}
     prov = read_provenance(ws, name, "geometric")
-    if (prov is None or not ws.depth_map_path(name, "geometric").is_file()
-            or not seed_map_path(ws, name).is_file()):
+    if prov is None or not _geometric_files_exist(ws, name):
         remove_filled(ws, name)
         return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
     entry = ctx.selection.references.get(name)
@@ -1252,12 +1248,16 @@ def _filled(ctx: StereoContext, name: str) -> RefOutcome:
     if not cfg.overwrite and _is_current(ws, name, "filled", _fingerprint(settings), size):
         return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
-    ref = _load_maps(ctx, name, "geometric", normals=False)
-    srcs = [_load_maps(ctx, s, "geometric", normals=False) for s in source_prov]
-    geometric_kept = ref.depth > 0
-    for n, maps in zip([name, *source_prov], [ref, *srcs], strict=True):  # the seeds are what is known
-        maps.depth = _read_seeds(ws, n, maps.depth.shape)
+    # The seeds of the reference and of its sources are what is known.
+    ref = _load_maps(ctx, name, "geometric", normals=False, depth_path=seed_map_path(ws, name))
+    srcs = [_load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
+            for s in source_prov]
     h, w = ref.depth.shape
+    geometric_kept = read_depth_map(ws.depth_map_path(name, "geometric")) > 0
+    if geometric_kept.shape != (h, w):
+        raise MapFormatError(
+            f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
+        )
     photo = read_depth_map(ws.depth_map_path(name, "photometric"))
     if photo.shape != (h, w):
         raise MapFormatError(
