@@ -71,6 +71,15 @@ def stereo_passes(config: StereoConfig) -> tuple[str, ...]:
         "photometric", "geometric")
 
 
+def graph_sources(config: StereoConfig, sources: dict[str, list[str] | None]) -> dict[str, list[str] | None]:
+    """The sources the geometric task of each reference waits for (:class:`TaskGraph`): its network
+    sources, or every image (``None``) when ``geom_splat_min_sources`` is on: that pass may make the
+    seeds of its sources from *their* sources' photometric maps (``docs/CONVENTIONS.md``)."""
+    if getattr(config, "geom_splat_min_sources", 0) > 0:
+        return dict.fromkeys(sources)
+    return dict(sources)
+
+
 @dataclass
 class DistributedStereoResult(StereoResult):
     """:class:`~colmap_pvs.stereo.StereoResult` plus what the cluster did.
@@ -517,7 +526,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
                     model_config=plan["model_config"], **extra)
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
-        graph = TaskGraph(refs, passes, plan["sources"], plan["auxiliary"])
+        graph = TaskGraph(refs, passes, graph_sources(config, plan["sources"]), plan["auxiliary"])
         outcomes: dict[Task, object] = {}
         bar = tqdm(total=len(graph.tasks), desc=f"stereo on Ray ({'+'.join(passes)})", unit="task")
         try:

@@ -93,13 +93,16 @@ logger = logging.getLogger(__name__)
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "pvsnet_default.pt"
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 3, "geometric": 7, "filled": 3}
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 8, "filled": 3}
 Stage = Literal["photometric", "geometric", "filled"]
 #: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
 GEOM_DEVIATION_SCALE = 0.02
 #: Parallax (pixels per ``consistency.PARALLAX_STEP`` of depth) from which an agreeing source counts fully
 #: in the geometric confidence; one with less counts in proportion.
 GEOM_FULL_PARALLAX = 1.0
+#: Confidence of a geometric pixel that the sources' seeds give (``geom_splat_min_sources``), times the
+#: share of the checked sources that agree on it: below most checked pixels, which are more often right.
+SPLAT_CONFIDENCE = 0.1
 
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
@@ -121,6 +124,10 @@ GEOMETRIC_SETTINGS = (
     "geom_seed_min_consistent",
     "geom_seed_depth_error",
 )
+#: Settings that change the geometric maps but not the seeds (their own fingerprint omits them).
+GEOMETRIC_ONLY_SETTINGS = ("geom_splat_min_sources",)
+#: Seed maps computed on demand (for other references' geometric passes) kept in memory per run.
+SEED_CACHE_SIZE = 32
 #: Settings that change the dense completion (with the geometric fingerprints it reads).
 FILLED_SETTINGS = (
     "geom_fill_min_sources",
@@ -262,7 +269,7 @@ class StereoConfig:
         metadata={"help": "geometric pass: consult a source only where its learned visibility >= this"},
     )
     geom_min_triangulation_angle: float = field(
-        default=2.2,
+        default=3.0,
         metadata={
             "help": "geometric pass: a source confirms a pixel only where the rays from its centre and "
             "the reference's meet at the pixel's point at this angle (degrees) or more (COLMAP's "
@@ -306,6 +313,14 @@ class StereoConfig:
         metadata={"help": "geometric pass: max relative depth error of the sources that make a seed "
                   "(see geom_seed_min_consistent)"},
     )
+    geom_splat_min_sources: int = field(
+        default=3,
+        metadata={
+            "help": "geometric pass: a pixel the check drops is kept with its sources' confirmed depth "
+            "where at least this many of the checked sources' seed maps, projected into it, agree "
+            "within 3 % (their median; 0: off)"
+        },
+    )
     geom_fill: bool = field(
         default=True,
         metadata={
@@ -343,6 +358,7 @@ class StereoConfig:
         check_range("geom_fill_segment_min_pixels", self.geom_fill_segment_min_pixels, low=3)
         check_range("geom_fill_segment_inliers", self.geom_fill_segment_inliers, low=0.0, high=1.0)
         check_range("geom_seed_min_consistent", self.geom_seed_min_consistent, low=1)
+        check_range("geom_splat_min_sources", self.geom_splat_min_sources, low=0)
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
@@ -653,6 +669,7 @@ class StereoContext:
     loader: ThreadPoolExecutor | None = None
     writer: ThreadPoolExecutor | None = None
     pending_writes: list[Future] = field(default_factory=list)
+    seed_cache: OrderedDict = field(default_factory=OrderedDict)  # name -> (fingerprint, Checked)
 
     def sources_of(self, name: str) -> tuple[list[str] | None, str]:
         """The sources of reference ``name``, or ``(None, reason)`` when it must be skipped."""
@@ -862,7 +879,7 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
 
 
 def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
-                depth_range, timings, vis=None, sources=(), seeds=None) -> None:
+                depth_range, timings, vis=None, sources=(), seeds=None, seed_fingerprint=None) -> None:
     """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
     then its previews.
 
@@ -878,7 +895,7 @@ def _write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, se
         write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
                     np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
     if seeds is not None:
-        write_array(seed_map_path(ws, name), seeds.astype(np.float32))
+        _write_seeds(ws, name, seeds, seed_fingerprint)
     write_normal_map(ws.normal_map_path(name, stage), normals)
     _write_provenance(ws, name, stage, settings, extra)
     write_depth_map(ws.depth_map_path(name, stage), depth)  # last: marks the pass done
@@ -1065,13 +1082,25 @@ def _check_visibility(coarse: np.ndarray, network_sources: list[str], sources: l
     return np.stack([up[network_sources.index(s)] if s in network_sources else ones for s in sources])
 
 
-def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
+@dataclass
+class CheckSetup:
+    """What a reference's geometric check reads: its photometric provenance ``prov``, the ``sources``
+    checked (with photometric maps), the network sources without maps (``missing``), its
+    view-selection ``entry`` and the ``settings`` (fingerprinted) that fix the check and the seeds."""
+
+    prov: dict
+    sources: list[str]
+    missing: list[str]
+    entry: object
+    settings: dict
+
+
+def _check_setup(ctx: StereoContext, name: str) -> CheckSetup | str:
+    """:class:`CheckSetup` of ``name``, or why its geometric pass cannot run."""
     cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
     prov = read_provenance(ws, name, "photometric")
     if prov is None or not ws.depth_map_path(name, "photometric").is_file():
-        return RefOutcome(name, "geometric", "skipped", "its photometric maps do not exist")
+        return "its photometric maps do not exist"
     source_prov: dict[str, dict] = {}  # each source's provenance, read once
 
     def has_maps(s: str) -> bool:
@@ -1096,40 +1125,181 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
             if s not in sources and s != name and has_maps(s):
                 sources.append(s)
                 counted += 1
-    settings = _settings(ctx, "geometric", GEOMETRIC_SETTINGS)
+    keys = tuple(k for k in GEOMETRIC_SETTINGS if k not in GEOMETRIC_ONLY_SETTINGS)
+    settings = _settings(ctx, "geometric", keys)
     settings.update(
         reference=prov["fingerprint"],
         sources={s: source_prov[s]["fingerprint"] for s in sources},
     )
-    size = tuple(prov.get("image_size", ctx.map_size(name)))
-    if (not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size)
-            and _geometric_files_exist(ws, name)):
-        return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     if len(sources) < min(cfg.geom_min_consistent, len(prov.get("sources", []))) or not sources:
-        return RefOutcome(name, "geometric", "skipped",
-                          f"{len(sources)} of its sources have photometric maps (missing: {missing})")
-    t0 = time.perf_counter()
+        return f"{len(sources)} of its sources have photometric maps (missing: {missing})"
+    return CheckSetup(prov, sources, missing, entry, settings)
+
+
+def _check_kwargs(ctx: StereoContext) -> dict:
+    cfg = ctx.config
+    return {"max_reproj_error": cfg.geom_max_reproj_error, "max_depth_error": cfg.geom_max_depth_error,
+            "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility,
+            "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
+
+
+def _load_check(ctx: StereoContext, name: str, setup: CheckSetup):
+    """``(ref, srcs, vis)``: the photometric maps of ``name`` and of its checked sources, and the
+    learned visibility of those sources (``None`` without a visibility map)."""
+    ws = ctx.workspace
     ref = _load_maps(ctx, name)
-    srcs = [_load_maps(ctx, s) for s in sources]
+    srcs = [_load_maps(ctx, s) for s in setup.sources]
     h, w = ref.depth.shape
-    all_sources = list(prov.get("sources", []))
     vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
     vis = None
     if vis_path.is_file():
         coarse = read_array(vis_path)
         coarse = coarse[..., None] if coarse.ndim == 2 else coarse
-        vis = _check_visibility(coarse.transpose(2, 0, 1), all_sources, sources, (h, w))
-    timings["load"] = time.perf_counter() - t0
+        vis = _check_visibility(coarse.transpose(2, 0, 1), list(setup.prov.get("sources", [])), setup.sources,
+                                (h, w))
+    return ref, srcs, vis
+
+
+def _seeds(cfg: StereoConfig, ref: SourceMaps, res) -> np.ndarray:
+    """``[H, W]`` the completion's seeds of ``ref``'s photometric depth from its check ``res``:
+    pixels that ``geom_seed_min_consistent`` sources confirm within ``geom_seed_depth_error`` (at any
+    angle: the completion is better off with the narrow-baseline agreement of a video than without
+    it), not isolated (the map of the seeds alone still gives them a normal); 0 elsewhere."""
+    strict = (res.agree & (res.depth_error <= cfg.geom_seed_depth_error)).sum(0)
+    seed_depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth
+    seeds = np.where((ref.depth > 0) & (strict >= cfg.geom_seed_min_consistent), seed_depth, 0.0)
+    return np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), seeds, 0.0).astype(np.float32)
+
+
+@dataclass
+class Checked:
+    """A reference's check of its photometric maps (no re-estimate): its seeds ``[H, W]`` and, when
+    another reference's geometric pass made it in this run, its checked depth and confidence
+    ``[H, W]`` (0 where dropped) before the sources' seeds are added, for its own pass to reuse
+    (``None`` for seeds read from disk or after its own pass)."""
+
+    seeds: np.ndarray
+    depth: np.ndarray | None = None
+    conf: np.ndarray | None = None
+
+
+def _kept(cfg: StereoConfig, ref: SourceMaps, res, vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` that the check ``res`` keeps: confirmed by
+    ``geom_min_consistent`` sources from ``geom_min_triangulation_angle`` or more, averaged over them
+    (``geom_average_depth``), with their geometric confidence of at least ``geom_min_confidence``."""
+    confirm = res.confirming(cfg.geom_min_triangulation_angle)  # agreeing, from far enough apart
+    keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geom_min_consistent)
+    depth = res.mean_depth(ref.depth, confirm) if cfg.geom_average_depth else ref.depth.copy()
+    depth = np.where(keep, depth, 0.0).astype(np.float32)
+    conf = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
+    keep &= conf >= cfg.geom_min_confidence
+    depth[~keep] = 0.0
+    return depth, np.where(keep, conf, 0.0).astype(np.float32)
+
+
+def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup) -> Checked:
+    """:class:`Checked` of ``name`` from its photometric maps and its checked sources'."""
+    ref, srcs, vis = _load_check(ctx, name, setup)
+    check = _check_kwargs(ctx)
+    res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+    depth, conf = _kept(ctx.config, ref, res, vis)
+    return Checked(_seeds(ctx.config, ref, res), depth, conf)
+
+
+def seed_provenance_path(ws: Workspace, name: str) -> Path:
+    """``stereo/seed_maps/NAME.json``: the fingerprint of the check that made ``NAME.bin``."""
+    return seed_map_path(ws, name).with_name(f"{name}.json")
+
+
+def _write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -> None:
+    """The seed map, then its fingerprint (which marks it current)."""
+    seed_provenance_path(ws, name).unlink(missing_ok=True)
+    write_array(seed_map_path(ws, name), seeds.astype(np.float32))
+    payload = json.dumps({"fingerprint": fingerprint}) + "\n"
+    atomic_write_bytes(seed_provenance_path(ws, name), payload.encode())
+
+
+def _remember_seeds(ctx: StereoContext, name: str, fingerprint: str, checked: Checked) -> None:
+    ctx.seed_cache[name] = (fingerprint, checked)
+    ctx.seed_cache.move_to_end(name)
+    while len(ctx.seed_cache) > SEED_CACHE_SIZE:
+        ctx.seed_cache.popitem(last=False)
+
+
+def _source_seeds(ctx: StereoContext, name: str) -> tuple[np.ndarray, str] | None:
+    """``(seeds, fingerprint)`` of ``name`` for another reference's geometric pass: from this run's
+    memory or a current seed map on disk, else computed from the photometric maps (the same check
+    as ``name``'s own geometric pass, so the same seeds whoever makes them) and written. ``None``
+    when ``name`` has no geometric check (no photometric maps)."""
+    ws = ctx.workspace
+    setup = _check_setup(ctx, name)
+    if isinstance(setup, str):
+        return None
+    fingerprint = _fingerprint(setup.settings)
+    cached = ctx.seed_cache.get(name)
+    if cached is not None and cached[0] == fingerprint:
+        return cached[1].seeds, fingerprint
+    if not ctx.config.overwrite:
+        try:
+            on_disk = json.loads(seed_provenance_path(ws, name).read_text()).get("fingerprint")
+            if on_disk == fingerprint:
+                seeds = read_array(seed_map_path(ws, name))
+                seeds = seeds[..., 0] if seeds.ndim == 3 else seeds
+                _remember_seeds(ctx, name, fingerprint, Checked(seeds))
+                return seeds, fingerprint
+        except (OSError, json.JSONDecodeError, MapFormatError):
+            pass
+    # the whole check, kept for this image's own geometric pass later in the run
+    checked = _check_photometric(ctx, name, setup)
+    _write_seeds(ws, name, checked.seeds, fingerprint)
+    _remember_seeds(ctx, name, fingerprint, checked)
+    return checked.seeds, fingerprint
+
+
+def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    setup = _check_setup(ctx, name)
+    if isinstance(setup, str):
+        return RefOutcome(name, "geometric", "skipped", setup)
+    prov, sources, missing, entry = setup.prov, setup.sources, setup.missing, setup.entry
+    seed_fingerprint = _fingerprint(setup.settings)
+    settings = dict(setup.settings, **_settings(ctx, "geometric", GEOMETRIC_ONLY_SETTINGS))
+    splat_sources: dict[str, str] = {}  # the sources whose seeds are projected in, and their fingerprints
+    if cfg.geom_splat_min_sources > 0:
+        for s in sources:
+            found = _check_setup(ctx, s)
+            if not isinstance(found, str):
+                splat_sources[s] = _fingerprint(found.settings)
+        settings["splat_seeds"] = splat_sources
+    size = tuple(prov.get("image_size", ctx.map_size(name)))
+    if (not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size)
+            and _geometric_files_exist(ws, name)):
+        return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
-    check = {"max_reproj_error": cfg.geom_max_reproj_error, "max_depth_error": cfg.geom_max_depth_error,
-             "max_normal_error": cfg.geom_max_normal_error, "min_visibility": cfg.geom_min_visibility,
-             "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
+    all_sources = list(prov.get("sources", []))
     reestimated = False
-    if cfg.geom_reestimate and all_sources and entry is not None:
+    cached = ctx.seed_cache.get(name)
+    if (not cfg.geom_reestimate and cached is not None and cached[0] == seed_fingerprint
+            and cached[1].depth is not None):  # checked earlier in this run, for another pass's seeds
+        checked = cached[1]
+        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
+        timings["reused_check"] = time.perf_counter() - t0
+    elif not cfg.geom_reestimate:
+        checked = _check_photometric(ctx, name, setup)
+        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
+        timings["consistency"] = time.perf_counter() - t0
+    else:
         # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;
         # here the depth they agree on becomes dense hints of a second network run (the coarse planes
         # centred on it, the cost modulated around it), whose maps are then checked as below.
+        ref, srcs, vis = _load_check(ctx, name, setup)
+        h, w = ref.depth.shape
+        check = _check_kwargs(ctx)
         first = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+        seeds = _seeds(cfg, ref, first)  # from the photometric maps, as :func:`_source_seeds` makes them
+        checked = Checked(seeds)
         agreed = (ref.depth > 0) & (first.count >= cfg.geom_min_consistent)
         hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
         del first
@@ -1143,38 +1313,47 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         vis = _check_visibility(maps.visibility, all_sources, sources, (h, w))
         reestimated = True
         t0 = time.perf_counter()
-    res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    confirm = res.confirming(cfg.geom_min_triangulation_angle)  # agreeing, from far enough apart
-    keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geom_min_consistent)
-    depth = res.mean_depth(ref.depth, confirm) if cfg.geom_average_depth else ref.depth.copy()
-    timings["consistency"] = time.perf_counter() - t0
+        res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+        depth, conf = _kept(cfg, ref, res, vis)
+        del res
+        timings["consistency"] = time.perf_counter() - t0
+    h, w = depth.shape
+    K = ctx.map_K(name, (w, h))
+    cam_from_world = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
+    keep = depth > 0
+    splatted = 0
+    if splat_sources:
+        # A dropped pixel whose surface other views confirmed: their seeds projected in (nearest
+        # surface per source), the median where enough of them agree (docs/CONVENTIONS.md).
+        t0 = time.perf_counter()
+        seed_maps = []
+        for s in splat_sources:
+            found = _source_seeds(ctx, s)
+            if found is not None:
+                sh, sw = found[0].shape
+                seed_maps.append(SourceMaps(found[0], None, ctx.map_K(s, (sw, sh)),
+                                            to_homogeneous(ctx.sparse.image_by_name(s).cam_from_world)))
+        timings["splat_seeds"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geom_splat_min_sources)
+        added = ~keep & (splat > 0)
+        depth = np.where(added, splat, depth).astype(np.float32)
+        conf = np.where(added, SPLAT_CONFIDENCE * support / max(1, len(sources)), conf).astype(np.float32)
+        splatted = int(added.sum())
+        timings["splat"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    depth = np.where(keep, depth, 0.0).astype(np.float32)
-    conf = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
-    keep &= conf >= cfg.geom_min_confidence
-    depth[~keep] = 0.0
-    conf = np.where(keep, conf, 0.0).astype(np.float32)
-    timings["confidence"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    normals = fit_normals(depth, ref.K)
+    normals = fit_normals(depth, K)
     depth[~np.any(normals != 0, axis=-1)] = 0.0
     conf[depth == 0] = 0.0
     timings["normals"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    # The completion's seeds: pixels that enough sources confirm within a tighter depth tolerance
-    # (at any angle: the completion is better off with the narrow-baseline agreement of a video than
-    # without it), not isolated (the map of the seeds alone still gives them a normal).
-    strict = (res.agree & (res.depth_error <= cfg.geom_seed_depth_error)).sum(0)
-    seed_depth = res.mean_depth(ref.depth) if cfg.geom_average_depth else ref.depth
-    seeds = np.where((ref.depth > 0) & (strict >= cfg.geom_seed_min_consistent), seed_depth, 0.0)
-    seeds = np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), seeds, 0.0).astype(np.float32)
-    timings["seeds"] = time.perf_counter() - t0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
     extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
-             "kept_fraction": float(keep.mean()), "reestimated": reestimated}
+             "kept_fraction": float((depth > 0).mean()), "splatted_fraction": splatted / depth.size,
+             "reestimated": reestimated}
+    _remember_seeds(ctx, name, seed_fingerprint, Checked(seeds))  # its own pass reruns its own check
     ctx.submit_write(_write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
-                     dr, timings, None, (), seeds)
+                     dr, timings, None, (), seeds, seed_fingerprint)
     return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
 
 

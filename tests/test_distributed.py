@@ -25,7 +25,7 @@ import pytest
 from conftest import make_tiny_checkpoint
 
 from colmap_pvs.cli.main import main
-from colmap_pvs.distributed import TaskGraph, stereo_passes
+from colmap_pvs.distributed import TaskGraph, graph_sources, stereo_passes
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.reconstruct import ReconstructConfig
@@ -77,6 +77,23 @@ def test_task_graph_dense_completion_waits_for_every_geometric_map():
     assert graph.pop() is None  # a's completion waits for c's geometric maps too
     graph.finish(("c", "geometric"))
     assert sorted(graph.pop() for _ in range(3)) == [(n, "filled") for n in "abc"]
+
+
+def test_task_graph_waits_for_every_photometric_map_with_splatted_seeds():
+    """With ``geom_splat_min_sources`` a geometric pass may make its sources' seeds from their own
+    sources' photometric maps, so it waits for every photometric map; without, for its sources'."""
+    sources = {"a": ["b"], "b": ["a"], "c": ["b"]}
+    assert graph_sources(types.SimpleNamespace(geom_splat_min_sources=0), sources) == sources
+    waits_all = graph_sources(types.SimpleNamespace(geom_splat_min_sources=3), sources)
+    assert waits_all == {"a": None, "b": None, "c": None}
+    graph = TaskGraph(["a", "b", "c"], ("photometric", "geometric"), waits_all)
+    for _ in range(3):
+        graph.pop()
+    graph.finish(("a", "photometric"))
+    graph.finish(("b", "photometric"))
+    assert graph.pop() is None  # a's sources are done, but c's photometric maps are not
+    graph.finish(("c", "photometric"))
+    assert sorted(graph.pop() for _ in range(3)) == [(n, "geometric") for n in "abc"]
 
 
 def test_task_graph_auxiliary_images_get_the_first_pass_only():

@@ -295,13 +295,14 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
 
 
 def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, tiny_checkpoint, monkeypatch):
-    """Exact photometric maps with one corrupted block: the geometric pass keeps the rest and drops it."""
+    """Exact photometric maps with one corrupted block: the geometric pass keeps the rest and drops it
+    (without the sources' seeds, which would give it their depth: the next test)."""
     from colmap_pvs.io.maps import write_depth_map, write_normal_map
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
     cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
-                       min_confidence=0.0, geom_consistency=False)
+                       min_confidence=0.0, geom_consistency=False, geom_splat_min_sources=0)
     run_stereo(cfg)
     from scenes import render_view
 
@@ -392,6 +393,51 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), geo)
 
 
+def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(analytic_scene, tmp_path,
+                                                                          tiny_checkpoint):
+    """A block of the reference 10 % too far fails the check; with ``geom_splat_min_sources`` the
+    sources' seeds (made on demand from their photometric maps, the same as their own geometric pass
+    makes them) give it their depth, ranked below the checked pixels."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    names = analytic_scene["names"]
+    ref, truth = names[0], exact[names[0]]
+    maps, seeds_dir = ws / "stereo" / "depth_maps", ws / "stereo" / "seed_maps"
+    block = np.zeros_like(truth, bool)
+    block[40:70, 60:100] = True
+    off = dataclasses.replace(cfg, geom_consistency=True, geom_splat_min_sources=0)
+    ctx = stereo_module.prepare_stereo(off)
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    dropped = read_depth_map(maps / f"{ref}.geometric.bin")
+    assert (dropped[block] > 0).mean() < 0.02 and not (seeds_dir / f"{names[1]}.bin").exists()
+    on = dataclasses.replace(off, geom_splat_min_sources=3)
+    ctx = stereo_module.prepare_stereo(on)
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    geo = read_depth_map(maps / f"{ref}.geometric.bin")
+    added = block & (geo > 0)
+    assert added.sum() > 0.5 * block.sum()
+    assert np.median(np.abs(geo[added] / truth[added] - 1)) < 0.005  # the sources' exact depth
+    np.testing.assert_array_equal(geo[dropped > 0], dropped[dropped > 0])  # the checked pixels as they were
+    conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    assert conf[added].min() > 0 and conf[added].max() <= stereo_module.SPLAT_CONFIDENCE
+    prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
+    assert prov["settings"]["geom_splat_min_sources"] == 3
+    assert set(prov["settings"]["splat_seeds"]) <= set(names)
+    assert prov["splatted_fraction"] > 0
+    # The sources' seeds were made on demand; their own geometric pass makes the same ones.
+    on_demand = {n: read_array(seeds_dir / f"{n}.bin") for n in prov["settings"]["splat_seeds"]}
+    assert on_demand and all((seeds_dir / f"{n}.json").is_file() for n in on_demand)
+    res = run_stereo(dataclasses.replace(on, geom_fill=False))
+    assert ref in res.geometric_done and sorted(res.geometric_processed) == sorted(set(names) - {ref})
+    for n, seeds in on_demand.items():
+        np.testing.assert_array_equal(read_array(seeds_dir / f"{n}.bin"), seeds)
+    # The setting is part of the geometric pass only: switching it off recomputes that pass.
+    res = run_stereo(dataclasses.replace(off, geom_fill=False))
+    assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
+    np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
+
+
 def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
     """A copy of the analytic scene after a photometric-only run, its photometric maps replaced by the
     exact ones, but a block of the first view's depth ``factor`` times too far. Returns the workspace,
@@ -426,7 +472,8 @@ def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analy
     ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.028)
     names = analytic_scene["names"]
     ref, truth = names[0], exact[names[0]]
-    geo_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_average_depth=False)
+    geo_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_average_depth=False,
+                                  geom_splat_min_sources=0)  # the kept pixels: the checked ones only
     run_stereo(geo_cfg)
     maps = ws / "stereo" / "depth_maps"
     geo = read_depth_map(maps / f"{ref}.geometric.bin")
@@ -456,8 +503,10 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
                                                                     monkeypatch):
     """``geom_reestimate``: the depth the sources' photometric maps agree on reaches a second network run
     as dense hints, and that run's depth (not the photometric map) is what the check keeps."""
-    # exact photometric maps, but a block of the reference 10 % too far
+    # exact photometric maps, but a block of the reference 10 % too far (and no seeds of the sources,
+    # which would fill it without the re-estimate)
     ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    cfg = dataclasses.replace(cfg, geom_splat_min_sources=0)
     names, model = analytic_scene["names"], analytic_scene["model"]
     calls = []
     real = stereo_module.estimate_depth
