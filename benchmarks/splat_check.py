@@ -36,8 +36,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
+from sweep_check import read_gt
 
 from colmap_pvs.completion import splat_depths
 from colmap_pvs.consistency import SourceMaps
@@ -79,13 +79,7 @@ def main() -> int:
         return read_array(path) if path.is_file() else None
 
     def gt_of(name: str) -> np.ndarray | None:
-        if a.gt is None:
-            return None
-        if (a.gt / f"{name}.npy").is_file():
-            return np.load(a.gt / f"{name}.npy").astype(np.float32)
-        if (a.gt / name).is_file():
-            return cv2.imread(str(a.gt / name), cv2.IMREAD_UNCHANGED).astype(np.float32) * a.gt_scale
-        return None
+        return read_gt(a.gt, name, a.gt_scale)
 
     counts = dict.fromkeys(("px", "kept", "added", "gt", "g", "g_ok", "a", "a_ok"), 0)
     suffix = ".geometric.json"

@@ -144,6 +144,18 @@ def plane_sweep(ref: View, sources: list[View], depth_range: tuple[float, float]
             np.where(valid, best, -1.0).astype(np.float32), ref_score)
 
 
+def read_gt(folder: Path | None, name: str, scale: float) -> np.ndarray | None:
+    """GT depth of ``name`` in ``folder``: ``NAME.npy``, or ``NAME`` (a 16-bit PNG) times ``scale``;
+    ``None`` without it."""
+    if folder is None:
+        return None
+    if (folder / f"{name}.npy").is_file():
+        return np.load(folder / f"{name}.npy").astype(np.float32)
+    if (folder / name).is_file():
+        return cv2.imread(str(folder / name), cv2.IMREAD_UNCHANGED).astype(np.float32) * scale
+    return None
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--workspace", type=Path, required=True, help="dense workspace after colmap-pvs stereo")
@@ -173,13 +185,7 @@ def main() -> int:
         return View(img, K, np.asarray(im.cam_from_world, np.float64)[:3])
 
     def gt_of(name: str) -> np.ndarray | None:
-        if a.gt is None:
-            return None
-        if (a.gt / f"{name}.npy").is_file():
-            return np.load(a.gt / f"{name}.npy").astype(np.float32)
-        if (a.gt / name).is_file():
-            return cv2.imread(str(a.gt / name), cv2.IMREAD_UNCHANGED).astype(np.float32) * a.gt_scale
-        return None
+        return read_gt(a.gt, name, a.gt_scale)
 
     def run(name: str):
         prov = json.loads((ws / "stereo" / "provenance" / f"{name}.photometric.json").read_text())

@@ -1279,14 +1279,15 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     all_sources = list(prov.get("sources", []))
+    reestimate = bool(cfg.geom_reestimate and all_sources and entry is not None)
     reestimated = False
     cached = ctx.seed_cache.get(name)
-    if (not cfg.geom_reestimate and cached is not None and cached[0] == seed_fingerprint
+    if (not reestimate and cached is not None and cached[0] == seed_fingerprint
             and cached[1].depth is not None):  # checked earlier in this run, for another pass's seeds
         checked = cached[1]
         seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
         timings["reused_check"] = time.perf_counter() - t0
-    elif not cfg.geom_reestimate:
+    elif not reestimate:
         checked = _check_photometric(ctx, name, setup)
         seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
         timings["consistency"] = time.perf_counter() - t0
