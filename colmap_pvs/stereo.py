@@ -123,6 +123,7 @@ GEOMETRIC_SETTINGS = (
     "geom_reestimate",
     "geom_seed_min_consistent",
     "geom_seed_depth_error",
+    "geom_splat_min_sources",
 )
 #: Settings that change the geometric maps but not the seeds (their own fingerprint omits them).
 GEOMETRIC_ONLY_SETTINGS = ("geom_splat_min_sources",)
@@ -1300,7 +1301,6 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         check = _check_kwargs(ctx)
         first = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
         seeds = _seeds(cfg, ref, first)  # from the photometric maps, as :func:`_source_seeds` makes them
-        checked = Checked(seeds)
         agreed = (ref.depth > 0) & (first.count >= cfg.geom_min_consistent)
         hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
         del first
@@ -1337,9 +1337,10 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         timings["splat_seeds"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geom_splat_min_sources)
-        added = ~keep & (splat > 0)
+        splat_conf = (SPLAT_CONFIDENCE * support / max(1, len(sources))).astype(np.float32)
+        added = ~keep & (splat > 0) & (splat_conf >= cfg.geom_min_confidence)
         depth = np.where(added, splat, depth).astype(np.float32)
-        conf = np.where(added, SPLAT_CONFIDENCE * support / max(1, len(sources)), conf).astype(np.float32)
+        conf = np.where(added, splat_conf, conf).astype(np.float32)
         splatted = int(added.sum())
         timings["splat"] = time.perf_counter() - t0
     t0 = time.perf_counter()

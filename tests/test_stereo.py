@@ -425,16 +425,26 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     assert prov["settings"]["geom_splat_min_sources"] == 3
     assert set(prov["settings"]["splat_seeds"]) <= set(names)
     assert prov["splatted_fraction"] > 0
-    # The sources' seeds were made on demand; their own geometric pass makes the same ones.
+    # The sources' seeds were made on demand, and their fingerprints are part of the reference's; their
+    # own geometric pass makes the same ones.
     on_demand = {n: read_array(seeds_dir / f"{n}.bin") for n in prov["settings"]["splat_seeds"]}
-    assert on_demand and all((seeds_dir / f"{n}.json").is_file() for n in on_demand)
+    assert on_demand
+    for n in on_demand:
+        stamp = json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"]
+        assert prov["settings"]["splat_seeds"][n] == stamp
     res = run_stereo(dataclasses.replace(on, geom_fill=False))
     assert ref in res.geometric_done and sorted(res.geometric_processed) == sorted(set(names) - {ref})
     for n, seeds in on_demand.items():
         np.testing.assert_array_equal(read_array(seeds_dir / f"{n}.bin"), seeds)
-    # The setting is part of the geometric pass only: switching it off recomputes that pass.
-    res = run_stereo(dataclasses.replace(off, geom_fill=False))
+    # A seed setting changes the sources' seeds and so the reference's pass; the splat setting is a
+    # geometric one that leaves the seeds as they are: switching it off recomputes that pass only.
+    res = run_stereo(dataclasses.replace(on, geom_fill=False, geom_seed_depth_error=0.02))
     assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
+    stamps = {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
+    assert all(stamps[n] != prov["settings"]["splat_seeds"][n] for n in on_demand)
+    res = run_stereo(dataclasses.replace(off, geom_fill=False, geom_seed_depth_error=0.02))
+    assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
+    assert stamps == {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
 
 
