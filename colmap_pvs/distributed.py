@@ -80,6 +80,13 @@ def graph_sources(config: StereoConfig, sources: dict[str, list[str] | None]) ->
     return dict(sources)
 
 
+def run_task_graph(config: StereoConfig, passes: tuple[str, ...], plan: dict) -> TaskGraph:
+    """The task graph of a Ray run from the driver's ``plan`` (its ``references``, their network
+    ``sources`` and the ``auxiliary`` images that only get the first pass), waiting as
+    :func:`graph_sources` says."""
+    return TaskGraph(plan["references"], passes, graph_sources(config, plan["sources"]), plan["auxiliary"])
+
+
 @dataclass
 class DistributedStereoResult(StereoResult):
     """:class:`~colmap_pvs.stereo.StereoResult` plus what the cluster did.
@@ -526,7 +533,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
                     model_config=plan["model_config"], **extra)
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
-        graph = TaskGraph(refs, passes, graph_sources(config, plan["sources"]), plan["auxiliary"])
+        graph = run_task_graph(config, passes, plan)
         outcomes: dict[Task, object] = {}
         bar = tqdm(total=len(graph.tasks), desc=f"stereo on Ray ({'+'.join(passes)})", unit="task")
         try:

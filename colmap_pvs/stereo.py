@@ -1198,12 +1198,20 @@ def _kept(cfg: StereoConfig, ref: SourceMaps, res, vis: np.ndarray | None) -> tu
     return depth, np.where(keep, conf, 0.0).astype(np.float32)
 
 
-def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup) -> Checked:
-    """:class:`Checked` of ``name`` from its photometric maps and its checked sources'."""
+def _reestimates(ctx: StereoContext, setup: CheckSetup) -> bool:
+    """Whether the reference of ``setup`` is re-estimated in its geometric pass (``geom_reestimate``,
+    with network sources and a view-selection entry): its kept pixels then come from the re-estimate,
+    not from the check of its photometric maps."""
+    return bool(ctx.config.geom_reestimate and setup.prov.get("sources") and setup.entry is not None)
+
+
+def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: bool = True) -> Checked:
+    """:class:`Checked` of ``name`` from its photometric maps and its checked sources' (the seeds
+    only, without ``kept``)."""
     ref, srcs, vis = _load_check(ctx, name, setup)
     check = _check_kwargs(ctx)
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    depth, conf = _kept(ctx.config, ref, res, vis)
+    depth, conf = _kept(ctx.config, ref, res, vis) if kept else (None, None)
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
@@ -1250,8 +1258,9 @@ def _source_seeds(ctx: StereoContext, name: str) -> tuple[np.ndarray, str] | Non
                 return seeds, fingerprint
         except (OSError, json.JSONDecodeError, MapFormatError):
             pass
-    # the whole check, kept for this image's own geometric pass later in the run
-    checked = _check_photometric(ctx, name, setup)
+    # the whole check, kept for this image's own geometric pass later in the run (unless that pass
+    # re-estimates, which checks the re-estimate instead)
+    checked = _check_photometric(ctx, name, setup, kept=not _reestimates(ctx, setup))
     _write_seeds(ws, name, checked.seeds, fingerprint)
     _remember_seeds(ctx, name, fingerprint, checked)
     return checked.seeds, fingerprint
@@ -1280,7 +1289,7 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     all_sources = list(prov.get("sources", []))
-    reestimate = bool(cfg.geom_reestimate and all_sources and entry is not None)
+    reestimate = _reestimates(ctx, setup)
     reestimated = False
     cached = ctx.seed_cache.get(name)
     if (not reestimate and cached is not None and cached[0] == seed_fingerprint

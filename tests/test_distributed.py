@@ -25,7 +25,7 @@ import pytest
 from conftest import make_tiny_checkpoint
 
 from colmap_pvs.cli.main import main
-from colmap_pvs.distributed import TaskGraph, graph_sources, stereo_passes
+from colmap_pvs.distributed import TaskGraph, graph_sources, run_task_graph, stereo_passes
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.reconstruct import ReconstructConfig
@@ -94,6 +94,14 @@ def test_task_graph_waits_for_every_photometric_map_with_splatted_seeds():
     assert graph.pop() is None  # a's sources are done, but c's photometric maps are not
     graph.finish(("c", "photometric"))
     assert sorted(graph.pop() for _ in range(3)) == [(n, "geometric") for n in "abc"]
+    # the Ray driver's graph, with the default settings: geometric tasks wait for every photometric map
+    plan = {"references": ["a", "b", "c"], "sources": sources, "auxiliary": []}
+    ray_graph = run_task_graph(StereoConfig(workspace_path=Path("x")), ("photometric", "geometric"), plan)
+    for _ in range(3):
+        ray_graph.pop()
+    ray_graph.finish(("a", "photometric"))
+    ray_graph.finish(("b", "photometric"))
+    assert ray_graph.pop() is None
 
 
 def test_task_graph_auxiliary_images_get_the_first_pass_only():
