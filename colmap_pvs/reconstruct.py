@@ -61,7 +61,8 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "matching": ("matcher", "exhaustive_max_images"),
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
-    "stereo": ("max_image_size", "num_views", "checkpoint_sha256"),  # the weights, wherever they are
+    # the weights by their content, wherever they are
+    "stereo": ("max_image_size", "num_views", "network_scale", "checkpoint_sha256"),
     "fusion": ("fusion_method",),
     "mesh": ("mesh", "mesh_depth"),
 }
@@ -98,6 +99,11 @@ class ReconstructConfig:
     )
     max_image_size: int = field(default=640, metadata={"help": "stereo: longest image side for inference"})
     num_views: int = field(default=5, metadata={"help": "stereo: views per reference (reference + sources)"})
+    network_scale: float = field(
+        default=0.8,
+        metadata={"help": "stereo: the network's size as a multiple of the map's (0.25-2; above 1: thin "
+                  "structures, at about scale^2 the time)"},
+    )
     checkpoint: Path | None = field(
         default=None, metadata={"help": "stereo: model checkpoint; default: the shipped checkpoint"}
     )
@@ -142,6 +148,8 @@ class ReconstructConfig:
             raise ConfigError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
         if not 1 <= self.mesh_depth <= 16:
             raise ConfigError(f"mesh_depth must be in [1, 16], got {self.mesh_depth}")
+        if not 0.25 <= self.network_scale <= 2.0:
+            raise ConfigError(f"network_scale must be in [0.25, 2], got {self.network_scale}")
         if 0 < self.max_image_size < 16:
             raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
@@ -581,6 +589,7 @@ def _reconstruct(
                 workspace_path=dense,
                 num_views=config.num_views,
                 max_image_size=config.max_image_size,
+                network_scale=config.network_scale,
                 checkpoint=config.checkpoint,
                 previews=config.previews,
                 overwrite="stereo" in prog.overwrite,

@@ -85,7 +85,7 @@ from .model.runtime import check_memory_budget
 from .normals import depth_to_normals, fit_normals
 from .prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
 from .types import Image, SparseModel
-from .upsampling import guided_upsample_depth, resize_bilinear
+from .upsampling import guided_upsample_depth, resize_area, resize_bilinear
 from .views import WIDE_SOURCES_HELP, ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
 logger = logging.getLogger(__name__)
@@ -129,6 +129,9 @@ GEOMETRIC_SETTINGS = (
 GEOMETRIC_ONLY_SETTINGS = ("geom_splat_min_sources",)
 #: Seed maps computed on demand (for other references' geometric passes) kept in memory per run.
 SEED_CACHE_SIZE = 32
+
+#: Largest ``network_scale``: the network on twice the map's size (about 4x its time and memory).
+NETWORK_SCALE_MAX = 2.0
 #: Settings that change the dense completion (with the geometric fingerprints it reads).
 FILLED_SETTINGS = (
     "geom_fill_min_sources",
@@ -151,8 +154,10 @@ class StereoConfig:
     network_scale: float = field(
         default=0.8,
         metadata={
-            "help": "run the network at this fraction of the map size (0.25-1) and bring its depth "
-            "back to the map size by image-guided upsampling; maps keep max_image_size"
+            "help": "run the network at this multiple of the map size (0.25-2) and bring its depth "
+            "back to the map size: image-guided upsampling below 1, nearest sampling above 1 (the "
+            "image is read at that size from its original, so up to its full resolution with real "
+            "detail: thin structures, at about scale^2 the time and memory); maps keep max_image_size"
         },
     )
     network_min_size: int = field(
@@ -365,7 +370,7 @@ class StereoConfig:
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
         if self.prior_blend_window < 1 or self.prior_blend_window % 2 == 0:
             raise ConfigError(f"prior_blend_window must be an odd number >= 1, got {self.prior_blend_window}")
-        check_range("network_scale", self.network_scale, low=0.25, high=1.0)
+        check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
         check_range("network_min_size", self.network_min_size, low=16)
         check_range("threads", self.threads, low=0)
         check_range("min_sources", self.min_sources, low=1)
@@ -611,8 +616,9 @@ class ImageCache:
         else:
             import cv2
 
+            shrink = size[0] <= pix.shape[1] and size[1] <= pix.shape[0]
             small = pix if (pix.shape[1], pix.shape[0]) == size else cv2.resize(
-                pix, size, interpolation=cv2.INTER_AREA
+                pix, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
             )
         return np.ascontiguousarray(small.transpose(2, 0, 1), dtype=np.float32) * np.float32(1.0 / 255.0)
 
@@ -701,7 +707,7 @@ class StereoContext:
         longest side not below ``min(network_min_size, the map's)``."""
         w, h = self.map_size(name)
         s = max(self.config.network_scale, min(1.0, self.config.network_min_size / max(w, h)))
-        if s >= 1.0:
+        if s == 1.0:
             return w, h
         return max(16, int(np.floor(w * s + 0.5))), max(16, int(np.floor(h * s + 0.5)))
 
@@ -968,16 +974,21 @@ def _network_maps(ctx: StereoContext, name: str, sources: list[str], timings: di
     except (RuntimeError, MemoryError) as exc:
         if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
             raise
-        reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower --max_image_size"
+        lower = "--network_scale or --max_image_size" if cfg.network_scale > 1.0 else "--max_image_size"
+        reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower {lower}"
         logger.error("skipping %s: %s (%s)", name, reason, exc)
         return reason
     timings["network"] = time.perf_counter() - t0
     conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
-    if guide is not None:  # back to the map size along the image's edges
+    if guide is not None:
         t0 = time.perf_counter()
         w, h = size
-        depth = guided_upsample_depth(depth, guide)
-        conf = resize_bilinear(conf, h, w)
+        if net_size[0] < w:  # up to the map size along the image's edges
+            depth = guided_upsample_depth(depth, guide)
+            conf = resize_bilinear(conf, h, w)
+        else:  # down: each map pixel takes the depth at its centre, never an average across an edge
+            depth = resize_nearest(depth, h, w)
+            conf = resize_area(conf, h, w)
         timings["upsample"] = time.perf_counter() - t0
     if prior is not None and (cfg.prior_blend_texture > 0 or cfg.prior_agreement_scale > 0):
         t0 = time.perf_counter()

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import ShapeError
 
-__all__ = ["guided_upsample_depth", "resize_bilinear"]
+__all__ = ["guided_upsample_depth", "resize_area", "resize_bilinear"]
 
 
 def resize_bilinear(values: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -26,6 +26,17 @@ def resize_bilinear(values: np.ndarray, height: int, width: int) -> np.ndarray:
             return np.zeros((0, height, width), np.float32)
         return np.stack([cv2.resize(v, (width, height), interpolation=cv2.INTER_LINEAR) for v in values])
     raise ShapeError(f"resize_bilinear expects [h, w] or [C, h, w], got shape {values.shape}")
+
+
+def resize_area(values: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``[h, w]`` float array to ``[height, width]``, each output pixel the mean of the input it covers
+    (for shrinking a confidence; never for depth, which it would average across edges)."""
+    import cv2
+
+    values = np.asarray(values, dtype=np.float32)
+    if values.ndim != 2:
+        raise ShapeError(f"resize_area expects [h, w], got shape {values.shape}")
+    return cv2.resize(values, (width, height), interpolation=cv2.INTER_AREA)
 
 
 def guided_upsample_depth(

@@ -4,6 +4,7 @@ names where to look, and bad photos refused before SfM."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 
@@ -44,6 +45,12 @@ def test_changed_settings_are_refused_or_recomputed(analytic_scene, tmp_path, ca
     assert len(err) == 1 and "max_image_size" in err[0] and "64" in err[0] and "48" in err[0]
     assert "--overwrite" in err[0] and "stereo" in err[0]
     assert max(read_depth_map(depth).shape) == 64  # nothing was touched
+    # the network's scale reaches stereo and is one of its settings
+    saved = json.loads((out / "dense" / "stereo" / "colmap_pvs_stereo.json").read_text())["config"]
+    assert saved["network_scale"] == ReconstructConfig(image_path=ws, workspace_path=out).network_scale
+    assert main([*argv, "--network_scale", "1.5"]) == 1
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "network_scale" in err[0] and "1.5" in err[0] and "stereo" in err[0]
 
     # With --overwrite only stereo and what follows it are recomputed.
     config = ReconstructConfig(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse",

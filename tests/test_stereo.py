@@ -7,12 +7,13 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 import colmap_pvs.stereo as stereo_module
 from colmap_pvs.cli.main import main
-from colmap_pvs.errors import CheckpointError
+from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
 from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
@@ -597,6 +598,45 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
     seen.clear()
     run_stereo(dataclasses.replace(cfg, network_min_size=40))
     assert all(tuple(s) == (30, 40) for s, _, _ in seen)
+
+
+def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_down(
+        synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+    """``network_scale`` 2 with 48 px maps: the network sees the 96x72 original (its real detail, not
+    the 48 px image enlarged) with intrinsics and hints at 96x72, and each map pixel takes the depth
+    the network gave at its centre (nearest: no average across an edge)."""
+    ws = _copy(synthetic_ws, tmp_path)
+    seen = []
+    real = stereo_module.estimate_depth
+
+    def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
+        out = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
+        seen.append((images.copy(), sparse_depth.shape, intrinsics[0].copy(), out[0].copy()))
+        return out
+
+    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
+    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+                       min_confidence=0.0, network_scale=2.0, network_min_size=16, geom_consistency=False,
+                       sparse_prior="off")
+    res = run_stereo(cfg)
+    names = sorted(res.processed)
+    assert names and len(seen) == len(names)
+    ws_obj, model = load_workspace(ws)
+    for name, (images, hints, K, net_depth) in zip(names, seen, strict=True):
+        assert images.shape[-2:] == (72, 96) and hints == (72, 96)
+        cam = model.camera_of(model.image_by_name(name))
+        assert (cam.width, cam.height) == (96, 72)  # the original: its pixels, unresampled
+        original = cv2.cvtColor(cv2.imread(str(ws / "images" / name)), cv2.COLOR_BGR2RGB)
+        np.testing.assert_allclose(images[0], original.transpose(2, 0, 1) / 255.0, atol=1e-6)
+        np.testing.assert_allclose(K, fusion_intrinsics(cam.K, (cam.width, cam.height), (96, 72)))
+        depth = read_depth_map(ws_obj.depth_map_path(name, "photometric"))
+        assert depth.shape == (36, 48)
+        centre = net_depth[1::2, 1::2]  # map pixel (c, r) has its centre at network pixel (2c + 1, 2r + 1)
+        valid = depth > 0
+        assert valid.mean() > 0.5
+        np.testing.assert_allclose(depth[valid], centre[valid], rtol=1e-6)
+    with pytest.raises(ConfigError, match="network_scale"):
+        StereoConfig(workspace_path=ws, network_scale=2.5)
 
 
 def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_size(
