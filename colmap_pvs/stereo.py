@@ -85,7 +85,7 @@ from .model.runtime import check_memory_budget
 from .normals import depth_to_normals, fit_normals
 from .prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
 from .types import Image, SparseModel
-from .upsampling import guided_upsample_depth, resize_area, resize_bilinear
+from .upsampling import guided_upsample_depth, resize_area, resize_bilinear, sample_depth_down
 from .views import WIDE_SOURCES_HELP, ViewSelection, ViewSelectionConfig, reference_sources, select_views
 
 logger = logging.getLogger(__name__)
@@ -983,11 +983,11 @@ def _network_maps(ctx: StereoContext, name: str, sources: list[str], timings: di
     if guide is not None:
         t0 = time.perf_counter()
         w, h = size
-        if net_size[0] < w:  # up to the map size along the image's edges
+        if net_size[0] * net_size[1] < w * h:  # up to the map size along the image's edges
             depth = guided_upsample_depth(depth, guide)
             conf = resize_bilinear(conf, h, w)
-        else:  # down: each map pixel takes the depth at its centre, never an average across an edge
-            depth = resize_nearest(depth, h, w)
+        else:  # down: each map pixel takes the depth on its own ray, never an average across an edge
+            depth = sample_depth_down(depth, h, w)
             conf = resize_area(conf, h, w)
         timings["upsample"] = time.perf_counter() - t0
     if prior is not None and (cfg.prior_blend_texture > 0 or cfg.prior_agreement_scale > 0):

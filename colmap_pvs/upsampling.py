@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import ShapeError
 
-__all__ = ["guided_upsample_depth", "resize_area", "resize_bilinear"]
+__all__ = ["guided_upsample_depth", "resize_area", "resize_bilinear", "sample_depth_down"]
 
 
 def resize_bilinear(values: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -37,6 +37,24 @@ def resize_area(values: np.ndarray, height: int, width: int) -> np.ndarray:
     if values.ndim != 2:
         raise ShapeError(f"resize_area expects [h, w], got shape {values.shape}")
     return cv2.resize(values, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def sample_depth_down(depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``depth`` ``[h, w]`` of a network run larger than its map, at the map's ``[height, width]``:
+    each map pixel takes the depth of the network pixel on its own ray (no blend across an edge).
+
+    Maps and network inputs share COLMAP's fusion convention (``io.maps.fusion_intrinsics``): pixel
+    ``(c, r)`` of a map ``W`` wide looks along the ray of image coordinate ``c * W_image / W``, so map
+    pixel ``(c, r)`` and network pixel ``(c * w / width, r * h / height)`` share a ray; the nearest
+    network pixel to that position is taken (for ``w = 2 * width``, exactly ``(2c, 2r)``).
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ShapeError(f"sample_depth_down expects [h, w], got shape {depth.shape}")
+    h, w = depth.shape
+    rows = np.minimum(np.floor(np.arange(height) * (h / height) + 0.5).astype(np.int64), h - 1)
+    cols = np.minimum(np.floor(np.arange(width) * (w / width) + 0.5).astype(np.int64), w - 1)
+    return depth[rows[:, None], cols[None, :]]
 
 
 def guided_upsample_depth(

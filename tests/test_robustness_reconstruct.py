@@ -27,7 +27,7 @@ def test_changed_settings_are_refused_or_recomputed(analytic_scene, tmp_path, ca
     out = tmp_path / "out"
     argv = ["reconstruct", "--image_path", str(ws / "images"), "--workspace_path", str(out),
             "--input_path", str(ws / "sparse"), "--checkpoint", str(ckpt), "--num_views", "3",
-            "--mesh_depth", "5", "--num_threads", "1", "--max_image_size", "64"]
+            "--mesh_depth", "5", "--num_threads", "1", "--network_scale", "0.5", "--max_image_size", "64"]
     assert main(argv) == 0
     captured = capfd.readouterr()
     assert not GLOG_LINE.search(captured.err), "pycolmap's log must go to the workspace, not the terminal"
@@ -47,7 +47,7 @@ def test_changed_settings_are_refused_or_recomputed(analytic_scene, tmp_path, ca
     assert max(read_depth_map(depth).shape) == 64  # nothing was touched
     # the network's scale reaches stereo and is one of its settings
     saved = json.loads((out / "dense" / "stereo" / "colmap_pvs_stereo.json").read_text())["config"]
-    assert saved["network_scale"] == ReconstructConfig(image_path=ws, workspace_path=out).network_scale
+    assert saved["network_scale"] == 0.5
     assert main([*argv, "--network_scale", "1.5"]) == 1
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "network_scale" in err[0] and "1.5" in err[0] and "stereo" in err[0]
@@ -120,6 +120,23 @@ def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
     with pycolmap_log_to_file(tmp_path / "logs2", enabled=False) as folder:  # --log_level DEBUG
         pycolmap.logging.info("loud message")
     assert folder is None and "loud message" in capfd.readouterr().err
+
+
+def test_network_scale_default_and_range_are_stereos(tmp_path):
+    """``reconstruct --network_scale`` repeats StereoConfig's default and range (reconstruct does not
+    import the stereo module, and torch with it, until it runs stereo)."""
+    from colmap_pvs.stereo import NETWORK_SCALE_MAX, StereoConfig
+
+    rec = ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w")
+    assert rec.network_scale == StereoConfig(workspace_path=tmp_path).network_scale
+    for ok in (0.25, NETWORK_SCALE_MAX):
+        ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=ok)
+        StereoConfig(workspace_path=tmp_path, network_scale=ok)
+    for bad in (0.2, NETWORK_SCALE_MAX + 0.1):
+        with pytest.raises(ConfigError, match="network_scale"):
+            ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=bad)
+        with pytest.raises(ConfigError, match="network_scale"):
+            StereoConfig(workspace_path=tmp_path, network_scale=bad)
 
 
 def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_path):

@@ -603,16 +603,20 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
 def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_down(
         synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
     """``network_scale`` 2 with 48 px maps: the network sees the 96x72 original (its real detail, not
-    the 48 px image enlarged) with intrinsics and hints at 96x72, and each map pixel takes the depth
-    the network gave at its centre (nearest: no average across an edge)."""
+    the 48 px image enlarged) with intrinsics and hints at 96x72, and each map pixel ``(c, r)`` takes
+    the network's depth at pixel ``(2c, 2r)``, the one on its own ray (no average across an edge).
+    With 64 px maps the network's 128x96 input is the original enlarged bilinearly."""
     ws = _copy(synthetic_ws, tmp_path)
     seen = []
     real = stereo_module.estimate_depth
 
     def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
-        out = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
-        seen.append((images.copy(), sparse_depth.shape, intrinsics[0].copy(), out[0].copy()))
-        return out
+        depth, conf, vis, prior = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
+        h, w = depth.shape  # a depth that tells every network pixel apart (the tiny net's is flat)
+        rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
+        pattern = (2.0 + 0.01 * rows + 0.0001 * cols).astype(np.float32)
+        seen.append((images.copy(), sparse_depth.shape, intrinsics[0].copy(), pattern))
+        return pattern, conf, vis, prior
 
     monkeypatch.setattr(stereo_module, "estimate_depth", spy)
     cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
@@ -631,10 +635,20 @@ def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_
         np.testing.assert_allclose(K, fusion_intrinsics(cam.K, (cam.width, cam.height), (96, 72)))
         depth = read_depth_map(ws_obj.depth_map_path(name, "photometric"))
         assert depth.shape == (36, 48)
-        centre = net_depth[1::2, 1::2]  # map pixel (c, r) has its centre at network pixel (2c + 1, 2r + 1)
         valid = depth > 0
         assert valid.mean() > 0.5
-        np.testing.assert_allclose(depth[valid], centre[valid], rtol=1e-6)
+        np.testing.assert_array_equal(depth[valid], net_depth[::2, ::2][valid])
+    # the same ray: a map pixel's and its network pixel's rays through fusion_intrinsics coincide
+    K_map = fusion_intrinsics(cam.K, (cam.width, cam.height), (48, 36))
+    ray_map = np.linalg.solve(K_map, [5 + 0.5, 7 + 0.5, 1.0])
+    ray_net = np.linalg.solve(fusion_intrinsics(cam.K, (96, 72), (96, 72)), [10 + 0.5, 14 + 0.5, 1.0])
+    np.testing.assert_allclose(ray_map / ray_map[2], ray_net / ray_net[2], atol=1e-12)
+    # beyond the original's size the network's input is the original enlarged bilinearly
+    seen.clear()
+    run_stereo(dataclasses.replace(cfg, max_image_size=64, overwrite=True))
+    original = cv2.cvtColor(cv2.imread(str(ws / "images" / names[0])), cv2.COLOR_BGR2RGB)
+    enlarged = cv2.resize(original, (128, 96), interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(seen[0][0][0], enlarged.transpose(2, 0, 1) / 255.0, atol=1e-6)
     with pytest.raises(ConfigError, match="network_scale"):
         StereoConfig(workspace_path=ws, network_scale=2.5)
 

@@ -50,3 +50,19 @@ def test_invalid_depth_never_contributes():
     np.testing.assert_array_equal(same, low)
     with pytest.raises(ShapeError, match="guide"):
         guided_upsample_depth(low, np.zeros((8, 8), np.float32))
+
+
+def test_sample_depth_down_takes_the_network_pixel_on_the_same_ray():
+    """A map ``W`` wide from a network ``w`` wide: map pixel ``c`` takes network pixel nearest to
+    ``c * w / W`` (COLMAP's fusion scales about the image origin), never a blend."""
+    from colmap_pvs.upsampling import sample_depth_down
+
+    net = np.arange(12 * 18, dtype=np.float32).reshape(12, 18) + 1.0
+    np.testing.assert_array_equal(sample_depth_down(net, 6, 9), net[::2, ::2])
+    out = sample_depth_down(net, 8, 12)  # scale 1.5: columns 0, 1.5, 3, 4.5, ... -> 0, 2, 3, 5, ...
+    cols = np.minimum(np.floor(np.arange(12) * 1.5 + 0.5).astype(int), 17)
+    rows = np.minimum(np.floor(np.arange(8) * 1.5 + 0.5).astype(int), 11)
+    np.testing.assert_array_equal(out, net[rows][:, cols])
+    assert set(np.unique(out)) <= set(np.unique(net))
+    with pytest.raises(ShapeError):
+        sample_depth_down(net[None], 6, 9)
