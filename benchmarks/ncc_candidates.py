@@ -30,7 +30,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from sweep_check import _HALF_INV, View, _box, _mean_of_best, read_gt
+from sweep_check import _HALF_INV, View, _box, _mean_of_best, load_view, read_gt
 
 from colmap_pvs.io.maps import read_array
 from colmap_pvs.io.sparse import read_sparse_model
@@ -100,16 +100,7 @@ def main() -> int:
     model = read_sparse_model(ws / "sparse")
 
     def view(name: str, size: tuple[int, int]) -> View:
-        im = model.image_by_name(name)
-        cam = model.camera_of(im)
-        w, h = size
-        img = cv2.imread(str(ws / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
-        if img.shape != (h, w):
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        K = cam.K.copy()
-        K[0] *= w / cam.width
-        K[1] *= h / cam.height
-        return View(img, K, np.asarray(im.cam_from_world, np.float64)[:3])
+        return load_view(ws, model, name, size)
 
     suffix = ".photometric.json"
     names = sorted(f.name[: -len(suffix)] for f in (ws / "stereo" / "provenance").glob(f"*{suffix}"))

@@ -144,6 +144,20 @@ def plane_sweep(ref: View, sources: list[View], depth_range: tuple[float, float]
             np.where(valid, best, -1.0).astype(np.float32), ref_score)
 
 
+def load_view(ws: Path, model, name: str, size: tuple[int, int]) -> View:
+    """:class:`View` of image ``name`` of workspace ``ws`` (sparse ``model``) at ``size`` ``(W, H)``."""
+    im = model.image_by_name(name)
+    cam = model.camera_of(im)
+    w, h = size
+    img = cv2.imread(str(ws / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
+    if img.shape != (h, w):
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    K = cam.K.copy()
+    K[0] *= w / cam.width
+    K[1] *= h / cam.height
+    return View(img, K, np.asarray(im.cam_from_world, np.float64)[:3])
+
+
 def read_gt(folder: Path | None, name: str, scale: float) -> np.ndarray | None:
     """GT depth of ``name`` in ``folder``: ``NAME.npy``, or ``NAME`` (a 16-bit PNG) times ``scale``;
     ``None`` without it."""
@@ -173,16 +187,7 @@ def main() -> int:
     model = read_sparse_model(ws / "sparse")
 
     def view(name: str, size: tuple[int, int]) -> View:
-        im = model.image_by_name(name)
-        cam = model.camera_of(im)
-        w, h = size
-        img = cv2.imread(str(ws / "images" / name), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
-        if img.shape != (h, w):
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        K = cam.K.copy()
-        K[0] *= w / cam.width
-        K[1] *= h / cam.height
-        return View(img, K, np.asarray(im.cam_from_world, np.float64)[:3])
+        return load_view(ws, model, name, size)
 
     def gt_of(name: str) -> np.ndarray | None:
         return read_gt(a.gt, name, a.gt_scale)
