@@ -1246,19 +1246,15 @@ def _remember_seeds(ctx: StereoContext, name: str, fingerprint: str, checked: Ch
         ctx.seed_cache.popitem(last=False)
 
 
-def _source_seeds(ctx: StereoContext, name: str) -> tuple[np.ndarray, str] | None:
-    """``(seeds, fingerprint)`` of ``name`` for another reference's geometric pass: from this run's
-    memory or a current seed map on disk, else computed from the photometric maps (the same check
-    as ``name``'s own geometric pass, so the same seeds whoever makes them) and written. ``None``
-    when ``name`` has no geometric check (no photometric maps)."""
+def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarray:
+    """The seeds of ``name`` (its check's ``setup``) for another reference's geometric pass: from this
+    run's memory or a current seed map on disk, else computed from the photometric maps (the same
+    check as ``name``'s own geometric pass, so the same seeds whoever makes them) and written."""
     ws = ctx.workspace
-    setup = _check_setup(ctx, name)
-    if isinstance(setup, str):
-        return None
     fingerprint = _fingerprint(setup.settings)
     cached = ctx.seed_cache.get(name)
     if cached is not None and cached[0] == fingerprint:
-        return cached[1].seeds, fingerprint
+        return cached[1].seeds
     if not ctx.config.overwrite:
         try:
             on_disk = json.loads(seed_provenance_path(ws, name).read_text()).get("fingerprint")
@@ -1266,7 +1262,7 @@ def _source_seeds(ctx: StereoContext, name: str) -> tuple[np.ndarray, str] | Non
                 seeds = read_array(seed_map_path(ws, name))
                 seeds = seeds[..., 0] if seeds.ndim == 3 else seeds
                 _remember_seeds(ctx, name, fingerprint, Checked(seeds))
-                return seeds, fingerprint
+                return seeds
         except (OSError, json.JSONDecodeError, MapFormatError):
             pass
     # the whole check, kept for this image's own geometric pass later in the run (unless that pass
@@ -1274,7 +1270,7 @@ def _source_seeds(ctx: StereoContext, name: str) -> tuple[np.ndarray, str] | Non
     checked = _check_photometric(ctx, name, setup, kept=not _reestimates(ctx, setup))
     _write_seeds(ws, name, checked.seeds, fingerprint)
     _remember_seeds(ctx, name, fingerprint, checked)
-    return checked.seeds, fingerprint
+    return checked.seeds
 
 
 def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
@@ -1287,13 +1283,13 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
     prov, sources, missing, entry = setup.prov, setup.sources, setup.missing, setup.entry
     seed_fingerprint = _fingerprint(setup.settings)
     settings = dict(setup.settings, **_settings(ctx, "geometric", GEOMETRIC_ONLY_SETTINGS))
-    splat_sources: dict[str, str] = {}  # the sources whose seeds are projected in, and their fingerprints
+    splat_sources: dict[str, CheckSetup] = {}  # the sources whose seeds are projected in: their checks
     if cfg.geom_splat_min_sources > 0:
         for s in sources:
             found = _check_setup(ctx, s)
             if not isinstance(found, str):
-                splat_sources[s] = _fingerprint(found.settings)
-        settings["splat_seeds"] = splat_sources
+                splat_sources[s] = found
+        settings["splat_seeds"] = {s: _fingerprint(found.settings) for s, found in splat_sources.items()}
     size = tuple(prov.get("image_size", ctx.map_size(name)))
     if (not cfg.overwrite and _is_current(ws, name, "geometric", _fingerprint(settings), size)
             and _geometric_files_exist(ws, name)):
@@ -1348,12 +1344,11 @@ def _geometric(ctx: StereoContext, name: str) -> RefOutcome:
         # surface per source), the median where enough of them agree (docs/CONVENTIONS.md).
         t0 = time.perf_counter()
         seed_maps = []
-        for s in splat_sources:
-            found = _source_seeds(ctx, s)
-            if found is not None:
-                sh, sw = found[0].shape
-                seed_maps.append(SourceMaps(found[0], None, ctx.map_K(s, (sw, sh)),
-                                            to_homogeneous(ctx.sparse.image_by_name(s).cam_from_world)))
+        for s, found in splat_sources.items():
+            seeds_s = _source_seeds(ctx, s, found)
+            sh, sw = seeds_s.shape
+            seed_maps.append(SourceMaps(seeds_s, None, ctx.map_K(s, (sw, sh)),
+                                        to_homogeneous(ctx.sparse.image_by_name(s).cam_from_world)))
         timings["splat_seeds"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geom_splat_min_sources)
