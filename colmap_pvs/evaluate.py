@@ -278,6 +278,28 @@ def resize_nearest(array: np.ndarray, height: int, width: int) -> np.ndarray:
     return array[rows[:, None], cols[None, :]]
 
 
+def thin_structure_mask(depth: np.ndarray, width: int = 4, gap: float = 0.8) -> np.ndarray:
+    """``[H, W]`` bool: the pixels of structures at most ``width`` pixels across, along a row or a
+    column, whose depth is below ``gap`` times the depth on both sides of them (fronds, poles, a
+    crown's prongs in front of what is behind them). ``depth`` is ``[H, W]``, 0 = no surface (treated
+    as infinitely far); the ``width`` pixels along the image border are never in the mask.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ShapeError(f"thin_structure_mask expects an [H, W] depth map, got shape {depth.shape}")
+    if width < 1 or not 0 < gap < 1:
+        raise ConfigError(f"thin_structure_mask needs width >= 1 and 0 < gap < 1, got {width}, {gap}")
+    d = np.where(depth > 0, depth, np.inf)
+    thin = np.zeros(depth.shape, bool)
+    for axis in (0, 1):
+        for before in range(1, width + 1):  # the structure spans before + after - 1 <= width pixels
+            for after in range(1, width + 2 - before):
+                thin |= (d < gap * np.roll(d, before, axis)) & (d < gap * np.roll(d, -after, axis))
+    thin &= depth > 0
+    thin[:width] = thin[-width:] = thin[:, :width] = thin[:, -width:] = False
+    return thin
+
+
 def _depth_sums(
     pred: np.ndarray,
     gt: np.ndarray,

@@ -23,6 +23,7 @@ from colmap_pvs.evaluate import (
     find_gt_depth,
     read_gt_depth,
     resize_nearest,
+    thin_structure_mask,
 )
 
 REL = (0.01, 0.02, 0.05)
@@ -419,3 +420,23 @@ def test_sparsification_curve_matches_the_oracle_for_perfect_confidence():
     assert random_rank["error"][4] > 1.5 * random_rank["oracle"][4]  # uniform errors: ~2x
     inverted = sparsification_curve(err, err)
     assert inverted["error"][0] > err.mean() > perfect["error"][0]
+
+
+def test_thin_structure_mask_keeps_narrow_near_structures_only():
+    depth = np.full((40, 50), 10.0)
+    depth[:, 44] = 9.0  # 10 % nearer only: not a separate structure
+    depth[30:34, :] = 7.0  # a horizontal bar 4 px high, 30 % nearer than the wall
+    depth[:, 20:23] = 5.0  # a vertical pole 3 px wide in front of both
+    depth[5:15, 35:41] = 5.0  # a box 6 px wide: not thin
+    mask = thin_structure_mask(depth)
+    expected = np.zeros_like(mask)
+    expected[4:-4, 20:23] = True  # the width-4 border is never in the mask
+    expected[30:34, 4:-4] = True
+    assert np.array_equal(mask, expected)
+    assert not thin_structure_mask(depth, width=2)[:, 20:23].any()  # 3 px is wider than 2
+    # no surface (0) counts as far: a pole against the sky is thin
+    sky = np.zeros((20, 20))
+    sky[:, 9] = 3.0
+    assert thin_structure_mask(sky)[4:-4, 9].all() and thin_structure_mask(sky).sum() == 12
+    with pytest.raises(ShapeError):
+        thin_structure_mask(np.ones((4, 4, 1)))

@@ -52,7 +52,7 @@ from ..views import (
 )
 from .cameras import REFERENCE_ROLES, CameraConfig, CameraRig, generate_cameras
 from .render import RenderConfig, Renderer, _pair, apply_photometric
-from .scenes import Scene, SceneConfig, build_scene
+from .scenes import FAMILIES, Scene, SceneConfig, build_scene
 from .sfm import SimulatedPoints, build_sparse_model, simulate_sparse_points
 
 logger = logging.getLogger(__name__)
@@ -371,6 +371,8 @@ class SyntheticDatasetConfig:
         """Hash of everything that changes a rendered scene (names the cache folder)."""
         d = config_to_dict(self)
         payload = {k: d[k] for k in ("seed", "width", "height", "num_points", "scene", "camera", "render")}
+        if tuple(payload["scene"]["families"]) == FAMILIES:  # keys (and caches) from before the field
+            payload["scene"] = {k: v for k, v in payload["scene"].items() if k != "families"}
         payload["version"] = CACHE_FORMAT_VERSION
         return hashlib.sha1(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 

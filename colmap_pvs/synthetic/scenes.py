@@ -1,6 +1,6 @@
 """Procedural synthetic scenes, deterministic from a seed.
 
-Three families (``SceneConfig.family``):
+Four families (``SceneConfig.family``):
 
 - ``"object"``: DTU-like. A few objects (boxes, spheres, cylinders, cones, bumpy blobs) on
   a table with thin legs, a floor and optional backdrop walls. Cameras live on a sphere
@@ -11,6 +11,10 @@ Three families (``SceneConfig.family``):
 - ``"facade"``: a building facade with relief (recessed windows, ledges), protruding
   boxes (balconies, pilasters), neighbouring facades, a street and street furniture
   (poles, bins, trees) that occludes it. Cameras stand in the street.
+- ``"plant"`` (only when named, or listed in ``SceneConfig.families``): a potted plant whose
+  fronds are thin curved strips, some with leaflets, fanned out in front of a wall 1-4 m behind:
+  thin structures a few pixels wide with a large depth gap to what is behind them, the case
+  (fern fronds, a statue's crown) that a coarse cost volume blurs. Cameras stand in front.
 
 A :class:`Scene` is a single textured triangle mesh (plain numpy, see :mod:`.mesh`) plus
 what camera generation needs: a region of interest that cameras look at, the space the
@@ -34,13 +38,20 @@ logger = logging.getLogger(__name__)
 
 FAMILIES = ("object", "room", "facade")
 
+#: Every family :func:`build_scene` knows (``"plant"`` is drawn by ``"any"`` only when listed in
+#: ``SceneConfig.families``).
+ALL_FAMILIES = (*FAMILIES, "plant")
+
 
 @dataclass(frozen=True)
 class SceneConfig:
     """How synthetic scenes are built (the seed is passed separately)."""
 
-    family: Literal["any", "object", "room", "facade"] = field(
-        default="any", metadata={"help": "scene family; 'any' draws one uniformly per scene"}
+    family: Literal["any", "object", "room", "facade", "plant"] = field(
+        default="any", metadata={"help": "scene family; 'any' draws one of `families` uniformly per scene"}
+    )
+    families: tuple[str, ...] = field(
+        default=FAMILIES, metadata={"help": "the families 'any' draws from; add 'plant' for thin fronds"}
     )
     min_objects: int = field(default=3, metadata={"help": "minimum number of objects / furniture items"})
     max_objects: int = field(default=6, metadata={"help": "maximum number of objects / furniture items"})
@@ -86,6 +97,11 @@ class SceneConfig:
             raise ConfigError(f"bumpiness must be >= 0, got {self.bumpiness}")
         if self.segments < 6:
             raise ConfigError(f"segments must be >= 6, got {self.segments}")
+        families = tuple(str(f) for f in self.families)
+        object.__setattr__(self, "families", families)
+        unknown = [f for f in families if f not in ALL_FAMILIES]
+        if not families or unknown:
+            raise ConfigError(f"families must be a non-empty subset of {ALL_FAMILIES}, got {self.families!r}")
 
 
 @dataclass(frozen=True)
@@ -664,7 +680,102 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
     return b.finish("facade", seed, light, c, roi_r, vs)
 
 
-_NOMINAL_DISTANCE = {"object": 0.9, "room": 2.2, "facade": 8.0}
+def _frond(b: _Builder, crown: np.ndarray, length: float, width: float, material: Material,
+           leaflets: bool) -> None:
+    """One frond from ``crown``: a tapering strip along a drooping quadratic curve, optionally with
+    leaflets (short thin strips) on both sides of it."""
+    rng = b.rng
+    az = rng.uniform(0, 2 * np.pi)
+    el = np.radians(rng.uniform(-15, 70))
+    out = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    mid = crown + out * length * 0.55
+    tip = crown + out * length + np.array([0.0, 0.0, -rng.uniform(0.1, 0.6) * length])
+    t = np.linspace(0.0, 1.0, 12)[:, None]
+    spine = (1 - t) ** 2 * crown + 2 * t * (1 - t) * mid + t**2 * tip  # [12, 3]
+    tangent = np.gradient(spine, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    roll = rng.uniform(-0.6, 0.6)
+    side = np.cross(tangent, [0.0, 0.0, 1.0])
+    side /= np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-9)
+    up = np.cross(side, tangent)
+    side = np.cos(roll) * side + np.sin(roll) * up
+    half = width * (1.0 - 0.8 * t) / 2  # [12, 1]: tapers towards the tip
+    grid = np.stack([spine - side * half, spine + side * half], axis=1)  # [12, 2, 3]
+    uv = np.stack(np.meshgrid(np.linspace(0, length, 12), [0.0, width], indexing="ij"), axis=-1)
+    b.mesh.add_grid(grid, uv, material)
+    if not leaflets:
+        return
+    n = int(rng.integers(6, 14))
+    leaf_len = length * rng.uniform(0.12, 0.3)
+    leaf_w = max(width * 0.35, 0.004)
+    for k in np.linspace(2, 10, n).astype(int):
+        for sign in (-1.0, 1.0):
+            d = sign * side[k] + 0.6 * tangent[k] + rng.normal(0, 0.15, 3)
+            d /= np.linalg.norm(d)
+            w = np.cross(d, up[k])
+            w = w / max(np.linalg.norm(w), 1e-9) * leaf_w
+            o = spine[k] - w / 2
+            b.mesh.add_quad(o, d * leaf_len * (1.0 - 0.5 * k / 11), w, material)
+
+
+def _plant_scene(b: _Builder, seed: int) -> Scene:
+    rng, cfg = b.rng, b.config
+    s = b.nominal_distance / 2.0  # the plant's size scales with the nominal distance
+    # floor, a wall behind (+y) and sometimes a side wall
+    b.mesh.add_heightfield(
+        [-8, -8, 0], [16, 0, 0], [0, 16, 0], b.smooth_heights(24, 24, 0.01), b.material(scale=2.0)
+    )
+    wall_y = rng.uniform(1.0, 4.0) * s
+    b.mesh.add_heightfield(
+        [-8, wall_y, 0], [16, 0, 0], [0, 0, 5.0], b.smooth_heights(24, 8, 0.01), b.material(scale=2.0)
+    )
+    if rng.random() < 0.25:
+        x = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 3.5) * s
+        b.mesh.add_heightfield([x, -8, 0], [0, 8 + wall_y, 0], [0, 0, 5.0], np.zeros((2, 2)),
+                               b.material(scale=2.0))
+    # a planter: a pot or a long box, and the trunk
+    pot_h = rng.uniform(0.2, 0.5) * s
+    if rng.random() < 0.5:
+        r = rng.uniform(0.12, 0.25) * s
+        b.mesh.add_cylinder([0, 0, 0], r * 0.8, r, pot_h, b.material(scale=0.5), b.material(scale=0.5),
+                            cfg.segments)
+        b.solid([-r, -r, 0], [r, r, pot_h])
+    else:
+        w, d = rng.uniform(0.6, 1.6) * s, rng.uniform(0.3, 0.6) * s
+        b.mesh.add_box([0, 0, pot_h / 2], [w, d, pot_h], rng.uniform(-0.3, 0.3), b.material(scale=0.5))
+        b.solid([-w / 2, -d / 2, 0], [w / 2, d / 2, pot_h])
+    trunk = rng.uniform(0.0, 0.8) * s
+    if trunk > 0.05 * s:
+        r = rng.uniform(0.02, 0.06) * s
+        b.mesh.add_cylinder([0, 0, pot_h], r, r * 0.7, trunk, b.material(scale=0.3), None, 12)
+    crown = np.array([0.0, 0.0, pot_h + trunk])
+    # fronds: one or two textures for the whole plant, as leaves of one plant look alike
+    mats = [b.material(scale=0.3) for _ in range(int(rng.integers(1, 3)))]
+    length = rng.uniform(0.4, 1.0) * s
+    for _ in range(int(rng.integers(8, 25))):
+        _frond(b, crown + rng.normal(0, 0.02 * s, 3), length * rng.uniform(0.7, 1.2),
+               rng.uniform(0.025, 0.09) * s, mats[int(rng.integers(len(mats)))], rng.random() < 0.5)
+    # a few straight canes or stalks
+    if cfg.thin_structures:
+        for _ in range(int(rng.integers(0, 4))):
+            xy = rng.normal(0, 0.4 * s, 2)
+            r = rng.uniform(0.005, 0.02) * s
+            b.mesh.add_cylinder([xy[0], xy[1], 0], r, r, rng.uniform(0.6, 1.8) * s, b.material(scale=0.3),
+                                None, 8)
+    b.occluders.append(crown * 0.8)
+    c = crown + np.array([0.0, 0.0, 0.1 * length])
+    vs = ViewSpace(
+        az_center_deg=-90.0,
+        az_range_deg=70.0,
+        el_range_deg=(-5.0, 45.0),
+        dist_range=(0.45 * b.nominal_distance, 0.9 * b.nominal_distance),
+        eye_box=np.array([[-7.0, -7.5, 0.2], [7.0, wall_y - 0.3, 4.5]]),
+        margin=0.05,
+    )
+    return b.finish("plant", seed, _directional_light(rng), c, float(np.clip(length, 0.3, 1.2)), vs)
+
+
+_NOMINAL_DISTANCE = {"object": 0.9, "room": 2.2, "facade": 8.0, "plant": 2.0}
 
 
 def build_scene(config: SceneConfig, seed: int) -> Scene:
@@ -672,10 +783,12 @@ def build_scene(config: SceneConfig, seed: int) -> Scene:
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5CE4E]))
     family = config.family
     if family == "any":
-        family = FAMILIES[int(rng.integers(len(FAMILIES)))]
+        family = config.families[int(rng.integers(len(config.families)))]
     nominal = _NOMINAL_DISTANCE[family] * float(rng.uniform(0.85, 1.2))
     builder = _Builder(rng, config, nominal)
-    make = {"object": _object_scene, "room": _room_scene, "facade": _facade_scene}[family]
+    make = {"object": _object_scene, "room": _room_scene, "facade": _facade_scene, "plant": _plant_scene}[
+        family
+    ]
     scene = make(builder, int(seed))
     logger.debug(
         "built %s scene (seed %d): %d triangles, %d textures",

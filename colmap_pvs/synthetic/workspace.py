@@ -50,8 +50,8 @@ class SyntheticWorkspaceConfig:
     """
 
     seed: int = field(default=0, metadata={"help": "scene seed"})
-    family: Literal["any", "object", "room", "facade"] = field(
-        default="object", metadata={"help": "scene family"}
+    family: Literal["any", "object", "room", "facade", "plant"] = field(
+        default="object", metadata={"help": "scene family (plant: thin fronds in front of a wall)"}
     )
     width: int = field(default=320, metadata={"help": "image width in pixels"})
     height: int = field(default=240, metadata={"help": "image height in pixels"})
