@@ -287,8 +287,11 @@ def thin_structure_mask(depth: np.ndarray, width: int = 4, gap: float = 0.8) -> 
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:
         raise ShapeError(f"thin_structure_mask expects an [H, W] depth map, got shape {depth.shape}")
-    if width < 1 or not 0 < gap < 1:
-        raise ConfigError(f"thin_structure_mask needs width >= 1 and 0 < gap < 1, got {width}, {gap}")
+    integer = isinstance(width, (int, np.integer)) and not isinstance(width, bool)
+    if not integer or width < 1 or not 0 < gap < 1:
+        raise ConfigError(
+            f"thin_structure_mask needs an integer width >= 1 and 0 < gap < 1, got {width!r}, {gap!r}"
+        )
     d = np.where(depth > 0, depth, np.inf)
     thin = np.zeros(depth.shape, bool)
     for axis in (0, 1):

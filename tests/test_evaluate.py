@@ -440,3 +440,6 @@ def test_thin_structure_mask_keeps_narrow_near_structures_only():
     assert thin_structure_mask(sky)[4:-4, 9].all() and thin_structure_mask(sky).sum() == 12
     with pytest.raises(ShapeError):
         thin_structure_mask(np.ones((4, 4, 1)))
+    for width, gap in ((2.5, 0.8), (True, 0.8), (0, 0.8), (4, 1.0)):
+        with pytest.raises(ConfigError, match="thin_structure_mask"):
+            thin_structure_mask(depth, width=width, gap=gap)

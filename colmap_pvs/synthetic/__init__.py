@@ -1,7 +1,8 @@
 """Synthetic multi-view scenes for training and testing (CPU only, deterministic from a seed).
 
 - :mod:`.textures`: shipped CC0 / public-domain photographs and procedural textures.
-- :mod:`.mesh`, :mod:`.scenes`: textured primitives and the ``object`` / ``room`` / ``facade`` families.
+- :mod:`.mesh`, :mod:`.scenes`: textured primitives and the ``object`` / ``room`` / ``facade`` / ``plant``
+  families.
 - :mod:`.cameras`: video-like, unstructured and "disturbing" camera rigs.
 - :mod:`.render`: open3d ray casting (GT depth and normals) and per-view photometric changes.
 - :mod:`.sfm`: simulated sparse points with tracks, as a :class:`~colmap_pvs.types.SparseModel`.

@@ -12,7 +12,8 @@ Four families (``SceneConfig.family``):
   boxes (balconies, pilasters), neighbouring facades, a street and street furniture
   (poles, bins, trees) that occludes it. Cameras stand in the street.
 - ``"plant"`` (only when named, or listed in ``SceneConfig.families``): a potted plant whose
-  fronds are thin curved strips, some with leaflets, fanned out in front of a wall 1-4 m behind:
+  fronds (2-11 cm wide, 0.3-1.4 m long) are thin curved strips, some with leaflets, fanned out in
+  front of a wall about 1-5 m behind the pot:
   thin structures a few pixels wide with a large depth gap to what is behind them, the case
   (fern fronds, a statue's crown) that a coarse cost volume blurs. Cameras stand in front.
 
@@ -97,11 +98,16 @@ class SceneConfig:
             raise ConfigError(f"bumpiness must be >= 0, got {self.bumpiness}")
         if self.segments < 6:
             raise ConfigError(f"segments must be >= 6, got {self.segments}")
-        families = tuple(str(f) for f in self.families)
+        if self.family != "any" and self.family not in ALL_FAMILIES:
+            raise ConfigError(f"family must be 'any' or one of {ALL_FAMILIES}, got {self.family!r}")
+        given = self.families
+        families = () if isinstance(given, str) else tuple(str(f) for f in given)
+        if not families or any(f not in ALL_FAMILIES for f in families):
+            raise ConfigError(
+                f"families must be a non-empty list of names from {ALL_FAMILIES} (a name given twice is "
+                f"drawn twice as often), got {given!r}"
+            )
         object.__setattr__(self, "families", families)
-        unknown = [f for f in families if f not in ALL_FAMILIES]
-        if not families or unknown:
-            raise ConfigError(f"families must be a non-empty subset of {ALL_FAMILIES}, got {self.families!r}")
 
 
 @dataclass(frozen=True)
@@ -151,7 +157,7 @@ class Scene:
     """A textured triangle mesh plus camera-placement hints.
 
     Attributes:
-        family: ``"object"``, ``"room"`` or ``"facade"``.
+        family: ``"object"``, ``"room"``, ``"facade"`` or ``"plant"``.
         seed: the seed it was built from.
         vertices: ``[V, 3]`` float64.
         triangles: ``[F, 3]`` int32.
@@ -681,9 +687,10 @@ def _facade_scene(b: _Builder, seed: int) -> Scene:
 
 
 def _frond(b: _Builder, crown: np.ndarray, length: float, width: float, material: Material,
-           leaflets: bool) -> None:
-    """One frond from ``crown``: a tapering strip along a drooping quadratic curve, optionally with
-    leaflets (short thin strips) on both sides of it."""
+           leaflets: bool) -> np.ndarray:
+    """One frond from ``crown``: a tapering strip along a drooping quadratic curve (kept above the
+    floor, ``z = 0``), optionally with leaflets (short thin strips) on both sides of it. Returns the
+    ``[3]`` middle of its spine."""
     rng = b.rng
     az = rng.uniform(0, 2 * np.pi)
     el = np.radians(rng.uniform(-15, 70))
@@ -692,6 +699,7 @@ def _frond(b: _Builder, crown: np.ndarray, length: float, width: float, material
     tip = crown + out * length + np.array([0.0, 0.0, -rng.uniform(0.1, 0.6) * length])
     t = np.linspace(0.0, 1.0, 12)[:, None]
     spine = (1 - t) ** 2 * crown + 2 * t * (1 - t) * mid + t**2 * tip  # [12, 3]
+    spine[:, 2] = np.maximum(spine[:, 2], 0.01 * length)
     tangent = np.gradient(spine, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     roll = rng.uniform(-0.6, 0.6)
@@ -704,7 +712,7 @@ def _frond(b: _Builder, crown: np.ndarray, length: float, width: float, material
     uv = np.stack(np.meshgrid(np.linspace(0, length, 12), [0.0, width], indexing="ij"), axis=-1)
     b.mesh.add_grid(grid, uv, material)
     if not leaflets:
-        return
+        return spine[6]
     n = int(rng.integers(6, 14))
     leaf_len = length * rng.uniform(0.12, 0.3)
     leaf_w = max(width * 0.35, 0.004)
@@ -716,6 +724,7 @@ def _frond(b: _Builder, crown: np.ndarray, length: float, width: float, material
             w = w / max(np.linalg.norm(w), 1e-9) * leaf_w
             o = spine[k] - w / 2
             b.mesh.add_quad(o, d * leaf_len * (1.0 - 0.5 * k / 11), w, material)
+    return spine[6]
 
 
 def _plant_scene(b: _Builder, seed: int) -> Scene:
@@ -739,22 +748,24 @@ def _plant_scene(b: _Builder, seed: int) -> Scene:
         r = rng.uniform(0.12, 0.25) * s
         b.mesh.add_cylinder([0, 0, 0], r * 0.8, r, pot_h, b.material(scale=0.5), b.material(scale=0.5),
                             cfg.segments)
-        b.solid([-r, -r, 0], [r, r, pot_h])
     else:
         w, d = rng.uniform(0.6, 1.6) * s, rng.uniform(0.3, 0.6) * s
         b.mesh.add_box([0, 0, pot_h / 2], [w, d, pot_h], rng.uniform(-0.3, 0.3), b.material(scale=0.5))
-        b.solid([-w / 2, -d / 2, 0], [w / 2, d / 2, pot_h])
+    b.solid(*b.last_aabb())
     trunk = rng.uniform(0.0, 0.8) * s
     if trunk > 0.05 * s:
         r = rng.uniform(0.02, 0.06) * s
         b.mesh.add_cylinder([0, 0, pot_h], r, r * 0.7, trunk, b.material(scale=0.3), None, 12)
+        b.solid(*b.last_aabb())
     crown = np.array([0.0, 0.0, pot_h + trunk])
     # fronds: one or two textures for the whole plant, as leaves of one plant look alike
     mats = [b.material(scale=0.3) for _ in range(int(rng.integers(1, 3)))]
     length = rng.uniform(0.4, 1.0) * s
+    middles = []
     for _ in range(int(rng.integers(8, 25))):
-        _frond(b, crown + rng.normal(0, 0.02 * s, 3), length * rng.uniform(0.7, 1.2),
-               rng.uniform(0.025, 0.09) * s, mats[int(rng.integers(len(mats)))], rng.random() < 0.5)
+        middles.append(_frond(b, crown + rng.normal(0, 0.02 * s, 3), length * rng.uniform(0.7, 1.2),
+                              rng.uniform(0.025, 0.09) * s, mats[int(rng.integers(len(mats)))],
+                              rng.random() < 0.5))
     # a few straight canes or stalks
     if cfg.thin_structures:
         for _ in range(int(rng.integers(0, 4))):
@@ -762,7 +773,8 @@ def _plant_scene(b: _Builder, seed: int) -> Scene:
             r = rng.uniform(0.005, 0.02) * s
             b.mesh.add_cylinder([xy[0], xy[1], 0], r, r, rng.uniform(0.6, 1.8) * s, b.material(scale=0.3),
                                 None, 8)
-    b.occluders.append(crown * 0.8)
+    # occluded views look at the plant from behind the fronds that reach towards the cameras (-y)
+    b.occluders.extend(m for m in middles if m[1] < crown[1] - 0.25 * length)
     c = crown + np.array([0.0, 0.0, 0.1 * length])
     vs = ViewSpace(
         az_center_deg=-90.0,
