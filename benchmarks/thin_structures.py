@@ -37,7 +37,7 @@ import real_depth as rd
 
 from colmap_pvs.config import config_from_dict
 from colmap_pvs.evaluate import resize_nearest, thin_structure_mask
-from colmap_pvs.io.maps import read_array
+from colmap_pvs.io.maps import colorize_depth, read_array
 from colmap_pvs.stereo import StereoConfig, run_stereo
 from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
 
@@ -109,9 +109,7 @@ def write_picture(out: Path, scenes: list[Path], scales: list[float], tag: str) 
         lo, hi = np.percentile(inv[0][inv[0] > 0], [2, 98])
         tiles = [cv2.resize(cv2.imread(str(scene / "images" / name)), (w, h), interpolation=cv2.INTER_AREA)]
         for label, x in zip(["GT", *[f"scale {s:g}" for s in scales]], inv, strict=True):
-            t = np.clip((x - lo) / max(hi - lo, 1e-9), 0, 1)
-            c = cv2.applyColorMap((t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-            c[x <= 0] = 0
+            c = colorize_depth(x, lo, hi)
             cv2.putText(c, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
             tiles.append(c)
         rows.append(np.concatenate(tiles, axis=1))

@@ -12,6 +12,7 @@ import pytest
 import colmap_pvs.config
 from colmap_pvs.errors import ConfigError, MapFormatError, ShapeError
 from colmap_pvs.io import (
+    colorize_depth,
     fusion_intrinsics,
     read_array,
     read_depth_map,
@@ -178,6 +179,13 @@ def test_previews(tmp_path: Path) -> None:
     assert (preview[0, :5] == 0).all() and (preview[1, 0] == 0).all()
     assert (preview[5].astype(int).sum(axis=1) > 0).all()
     assert not np.array_equal(preview[5, 1], preview[5, -2])  # colour varies with depth
+    # the preview is colorize_depth's picture; a fixed range clips (benchmark pictures share one scale)
+    assert np.array_equal(preview, colorize_depth(depth))
+    fixed = colorize_depth(depth, 2.0, 3.0)
+    assert np.array_equal(fixed[5, 0], fixed[5, 4]) and not np.array_equal(fixed[5, 0], fixed[5, -1])
+    assert (fixed[0, :5] == 0).all()
+    with pytest.raises(ShapeError):
+        colorize_depth(np.ones((2, 2, 1)))
 
     normals = np.zeros((4, 5, 3))
     normals[1:, :, 2] = -1.0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from .images import load_image, read_image_size, resize_image
 from .maps import (
+    colorize_depth,
     fusion_intrinsics,
     read_array,
     read_depth_map,
@@ -51,6 +52,7 @@ __all__ = [
     "read_patch_match_cfg",
     "read_sparse_model",
     "resize_image",
+    "colorize_depth",
     "save_depth_preview",
     "save_normal_preview",
     "save_scalar_preview",

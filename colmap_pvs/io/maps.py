@@ -220,14 +220,15 @@ def _check_2d(values: np.ndarray, path: str | os.PathLike) -> np.ndarray:
     return values
 
 
-def save_depth_preview(
-    path: str | os.PathLike, depth: np.ndarray, vmin: float | None = None, vmax: float | None = None
-) -> Path:
-    """Colour-mapped PNG of a ``[H, W]`` depth map; invalid (``<= 0`` or non-finite) pixels are black.
+def colorize_depth(depth: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
+    """``[H, W, 3]`` uint8 BGR (turbo colour map) of a ``[H, W]`` depth (or inverse depth) map, ``vmin``
+    blue to ``vmax`` red; invalid (``<= 0`` or non-finite) pixels are black.
 
-    ``vmin``/``vmax`` default to the 2nd/98th percentiles of the valid depths.
+    ``vmin``/``vmax`` default to the 2nd/98th percentiles of the valid values.
     """
-    depth = _check_2d(depth, path)
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ShapeError(f"colorize_depth expects an [H, W] map, got shape {depth.shape}")
     valid = np.isfinite(depth) & (depth > 0)
     if valid.any():
         lo, hi = np.percentile(depth[valid], [2.0, 98.0])
@@ -238,7 +239,16 @@ def save_depth_preview(
     scaled = np.clip((np.where(valid, depth, lo) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
     bgr = cv2.applyColorMap((scaled * 255).round().astype(np.uint8), cv2.COLORMAP_TURBO)
     bgr[~valid] = 0
-    return _write_png(path, bgr)
+    return bgr
+
+
+def save_depth_preview(
+    path: str | os.PathLike, depth: np.ndarray, vmin: float | None = None, vmax: float | None = None
+) -> Path:
+    """Colour-mapped PNG of a ``[H, W]`` depth map (:func:`colorize_depth`); invalid (``<= 0`` or
+    non-finite) pixels are black. ``vmin``/``vmax`` default to the 2nd/98th percentiles of the valid depths.
+    """
+    return _write_png(path, colorize_depth(_check_2d(depth, path), vmin, vmax))
 
 
 def save_normal_preview(path: str | os.PathLike, normals: np.ndarray) -> Path:
