@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -217,18 +218,22 @@ def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(scene, tmp_pat
     if ray.is_initialized():
         pytest.skip("a Ray is already running in this process")
     before = signal.getsignal(signal.SIGTERM)
-    ws = _copy(scene, tmp_path)
-    killed: list[int] = []
-    stop = threading.Event()
-    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
-    killer.start()
-    try:
-        result = run_stereo(_config(ws, scene["ckpt"], ray_address=""))
-    finally:
-        stop.set()
-        killer.join(5)
-    assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
-    assert len(killed) == 1, "no worker was seen running a task"
+    for attempt in range(3):  # the killer can miss every short task of a run: then try a fresh copy
+        (tmp_path / f"try{attempt}").mkdir()
+        ws = _copy(scene, tmp_path / f"try{attempt}")
+        killed: list[int] = []
+        stop = threading.Event()
+        killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
+        killer.start()
+        try:
+            result = run_stereo(_config(ws, scene["ckpt"], ray_address=""))
+        finally:
+            stop.set()
+            killer.join(5)
+        assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
+        if killed:
+            break
+    assert len(killed) == 1, "no worker was seen running a task in 3 runs"
     assert killed[0] not in _worker_pids("any")
     assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
     assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
@@ -308,19 +313,33 @@ def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
 
 
 def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
-    ws = _copy(scene, tmp_path)
-    killed: list[int] = []
-    stop = threading.Event()
-    killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
-    killer.start()
-    try:  # no retries allowed: the first worker lost stops the run, naming its reference
-        with pytest.raises(DistributedError, match=r"view_\d+.png' \(photometric pass\): its Ray worker died "
-                           r"1 time\(s\) \(last: ActorDiedError; ray_max_retries=0\)"):
+    """With ``ray_max_retries=0`` the first worker lost stops the run with an error naming its reference.
+
+    The tiny network's tasks are short, so the killer thread can miss every one of them; such a run
+    then simply finishes. It is repeated on a fresh copy (at most 3 tries) until a worker was killed.
+    """
+    error = None
+    for attempt in range(3):
+        (tmp_path / f"try{attempt}").mkdir()
+        ws = _copy(scene, tmp_path / f"try{attempt}")
+        killed: list[int] = []
+        stop = threading.Event()
+        killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
+        killer.start()
+        try:  # no retries allowed: the first worker lost stops the run, naming its reference
             run_stereo(_config(ws, scene["ckpt"], ray_max_retries=0, ray_workers=1))
-    finally:
-        stop.set()
-        killer.join(5)
-    assert len(killed) == 1
+        except DistributedError as exc:
+            error = exc
+        finally:
+            stop.set()
+            killer.join(5)
+        if killed:
+            break
+        assert error is None, f"the run failed although no worker was killed: {error}"
+    assert len(killed) == 1, "no worker was seen running a task in 3 runs"
+    assert error is not None, "a worker was killed mid-task, but the run did not fail"
+    assert re.search(r"view_\d+.png' \((photometric|geometric) pass\): its Ray worker died 1 time\(s\) "
+                     r"\(last: ActorDiedError; ray_max_retries=0\)", str(error)), str(error)
     assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
     deadline = time.monotonic() + 20
     while _worker_pids("any") and time.monotonic() < deadline:  # the run kills its workers when it stops
