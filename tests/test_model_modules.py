@@ -253,6 +253,33 @@ def test_next_stage_range_is_clamped_and_has_min_width():
     assert torch.all(2 * 1.5 * 0.5 >= start[..., -1] - end[..., -1])
 
 
+def test_next_stage_range_spans_both_sides_of_an_edge_within_the_neighbourhood():
+    """``neighbourhood = r``: a pixel within ``r`` of a depth edge gets hypotheses on both sides of it
+    (a thin structure merged with its background keeps both depths); farther away the range is the
+    same as without the neighbourhood."""
+    dmin, dmax = torch.tensor([1.0]), torch.tensor([5.0])
+    _, inv_step = plane_range(dmin, dmax, 32)
+    inv_mean = torch.full((1, 1, 1, 12), 0.3)
+    inv_mean[..., 6:] = 0.9  # near (inverse depth 0.9) right of column 6, far (0.3) left of it
+    sigma = torch.full_like(inv_mean, 0.01)
+    common = dict(k=1.5, min_halfwidth_planes=1.0, inv_lo=1 / dmax, inv_hi=1 / dmin)
+    plain = next_stage_range(inv_mean, sigma, inv_step, (1, 12), 8, **common)
+    wide = next_stage_range(inv_mean, sigma, inv_step, (1, 12), 8, neighbourhood=2, **common)
+    zero = next_stage_range(inv_mean, sigma, inv_step, (1, 12), 8, neighbourhood=0, **common)
+    for a, b in zip(plain, zero, strict=True):
+        torch.testing.assert_close(a, b)  # 0 is off: the range of before
+    start, step = wide
+    end = start - 7 * step
+    for col in (4, 5, 6, 7):  # within 2 pixels of the edge: both 0.3 and 0.9 among the hypotheses
+        assert end[0, 0, 0, col] <= 0.3 + 1e-6 and start[0, 0, 0, col] >= 0.9 - 1e-6, col
+    for col in (0, 1, 2, 9, 10, 11):  # farther away: unchanged
+        torch.testing.assert_close(start[..., col], plain[0][..., col])
+        torch.testing.assert_close(step[..., col], plain[1][..., col])
+    assert torch.all(start <= 1.0 + 1e-6) and torch.all(end >= 0.2 - 1e-6)  # still inside the depth range
+    with pytest.raises(ConfigError, match="stage_neighbourhood must be >= 0, got -1"):
+        PVSNetConfig(stage_neighbourhood=-1)
+
+
 # ----------------------------------------------------------------------------- guidance
 
 

@@ -70,6 +70,7 @@ def next_stage_range(
     min_halfwidth_planes: float,
     inv_lo: torch.Tensor,
     inv_hi: torch.Tensor,
+    neighbourhood: int = 0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-pixel hypothesis range of the next (finer) stage (UCSNet-style uncertainty awareness).
 
@@ -78,10 +79,21 @@ def next_stage_range(
     clipped) inside ``[inv_lo, inv_hi] = [1/depth_max, 1/depth_min]`` (``[B]``). Gradients do
     not flow through the range.
 
+    With ``neighbourhood = r > 0`` the range is widened (before upsampling) to also span the
+    minimum and maximum of ``inv_mean`` within ``r`` pixels (Chebyshev), so that next to a depth
+    edge the finer stage can still choose either side: a thin structure that the coarser stage
+    merged with its background keeps both depths among its hypotheses. Away from edges the range
+    is the same as with ``r = 0``.
+
     Returns ``(inv_start, inv_step)``, each ``[B, 1, *size]``.
     """
     inv_mean, inv_sigma = inv_mean.detach(), inv_sigma.detach()
     half = torch.maximum(k * inv_sigma, min_halfwidth_planes * inv_step.detach().expand_as(inv_sigma))
+    if neighbourhood > 0:
+        window, r = 2 * neighbourhood + 1, neighbourhood
+        high = torch.maximum(F.max_pool2d(inv_mean, window, stride=1, padding=r), inv_mean + half)
+        low = torch.minimum(-F.max_pool2d(-inv_mean, window, stride=1, padding=r), inv_mean - half)
+        inv_mean, half = (high + low) / 2, (high - low) / 2
     center = F.interpolate(inv_mean, size=size, mode="bilinear", align_corners=False)
     half = F.interpolate(half, size=size, mode="bilinear", align_corners=False)
     lo_b, hi_b = inv_lo.view(-1, 1, 1, 1), inv_hi.view(-1, 1, 1, 1)

@@ -71,6 +71,13 @@ class PVSNetConfig:
         default=1.0,
         metadata={"help": "minimum half-width of a next-stage range, in previous-stage plane spacings"},
     )
+    stage_neighbourhood: int = field(
+        default=0,
+        metadata={
+            "help": "next-stage range also spans the min..max of the previous estimate within this many "
+            "previous-stage pixels (0: off), so a structure merged at a coarser stage can still separate"
+        },
+    )
     confidence_planes: int = field(
         default=4, metadata={"help": "confidence = probability mass of this many planes around the estimate"}
     )
@@ -196,6 +203,10 @@ class PVSNetConfig:
         )
         need(self.resnet_blocks >= 0, f"resnet_blocks must be >= 0, got {self.resnet_blocks}")
         need(self.uncertainty_k > 0, f"uncertainty_k must be > 0, got {self.uncertainty_k}")
+        need(
+            self.stage_neighbourhood >= 0,
+            f"stage_neighbourhood must be >= 0, got {self.stage_neighbourhood}",
+        )
         need(
             self.min_halfwidth_planes > 0,
             f"min_halfwidth_planes must be > 0, got {self.min_halfwidth_planes}",

@@ -313,6 +313,7 @@ class PVSNet(nn.Module):
                 min_halfwidth_planes=cfg.min_halfwidth_planes,
                 inv_lo=inv_lo,
                 inv_hi=inv_hi,
+                neighbourhood=cfg.stage_neighbourhood,
             )
             hyp = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
             Kk = scale_intrinsics(intrinsics, 1.0 / scale)
