@@ -218,22 +218,12 @@ def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(scene, tmp_pat
     if ray.is_initialized():
         pytest.skip("a Ray is already running in this process")
     before = signal.getsignal(signal.SIGTERM)
-    for attempt in range(3):  # the killer can miss every short task of a run: then try a fresh copy
-        (tmp_path / f"try{attempt}").mkdir()
-        ws = _copy(scene, tmp_path / f"try{attempt}")
-        killed: list[int] = []
-        stop = threading.Event()
-        killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
-        killer.start()
-        try:
-            result = run_stereo(_config(ws, scene["ckpt"], ray_address=""))
-        finally:
-            stop.set()
-            killer.join(5)
+
+    def after_run() -> None:
         assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
-        if killed:
-            break
-    assert len(killed) == 1, "no worker was seen running a task in 3 runs"
+
+    ws, killed, result, error = _run_killing_a_worker(scene, tmp_path, after_run, ray_address="")
+    assert error is None, f"the lost reference was not retried: {error}"
     assert killed[0] not in _worker_pids("any")
     assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
     assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
@@ -312,13 +302,11 @@ def _kill_busy_worker(killed: list[int], stop: threading.Event) -> None:
             time.sleep(0.005)
 
 
-def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
-    """With ``ray_max_retries=0`` the first worker lost stops the run with an error naming its reference.
-
-    The tiny network's tasks are short, so the killer thread can miss every one of them; such a run
-    then simply finishes. It is repeated on a fresh copy (at most 3 tries) until a worker was killed.
-    """
-    error = None
+def _run_killing_a_worker(scene, tmp_path, after_run, **config):
+    """``run_stereo`` on a fresh copy of the scene while :func:`_kill_busy_worker` watches; repeated (at
+    most 3 runs) while the killer missed every short task of the tiny network. ``after_run()`` is
+    called after each run. Returns ``(workspace, killed pids, result or None, DistributedError or None)``;
+    a run that fails although nothing was killed fails the test."""
     for attempt in range(3):
         (tmp_path / f"try{attempt}").mkdir()
         ws = _copy(scene, tmp_path / f"try{attempt}")
@@ -326,17 +314,31 @@ def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
         stop = threading.Event()
         killer = threading.Thread(target=_kill_busy_worker, args=(killed, stop), daemon=True)
         killer.start()
-        try:  # no retries allowed: the first worker lost stops the run, naming its reference
-            run_stereo(_config(ws, scene["ckpt"], ray_max_retries=0, ray_workers=1))
+        result = error = None
+        try:
+            result = run_stereo(_config(ws, scene["ckpt"], **config))
         except DistributedError as exc:
             error = exc
         finally:
             stop.set()
             killer.join(5)
+        if after_run is not None:
+            after_run()
         if killed:
             break
         assert error is None, f"the run failed although no worker was killed: {error}"
     assert len(killed) == 1, "no worker was seen running a task in 3 runs"
+    return ws, killed, result, error
+
+
+def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path):
+    """With ``ray_max_retries=0`` the first worker lost stops the run with an error naming its reference.
+
+    The tiny network's tasks are short, so the killer thread can miss every one of them; such a run
+    then simply finishes. It is repeated on a fresh copy (at most 3 tries) until a worker was killed.
+    """
+    # no retries allowed: the first worker lost stops the run, naming its reference
+    ws, killed, _, error = _run_killing_a_worker(scene, tmp_path, None, ray_max_retries=0, ray_workers=1)
     assert error is not None, "a worker was killed mid-task, but the run did not fail"
     assert re.search(r"view_\d+.png' \((photometric|geometric) pass\): its Ray worker died 1 time\(s\) "
                      r"\(last: ActorDiedError; ray_max_retries=0\)", str(error)), str(error)
