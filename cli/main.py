@@ -120,6 +120,14 @@ COMMANDS: tuple[Command, ...] = (
         "colmap_pvs.cli.reports:report_train",
     ),
     Command(
+        "average-weights",
+        "weighted average of PVSNet checkpoints (weights and their fine-tune: a 'model soup')",
+        "colmap_pvs.average_weights:AverageWeightsConfig",
+        "colmap_pvs.average_weights:average_weights",
+        "colmap_pvs.cli.reports:report_train",
+        required=("checkpoints", "output_path"),
+    ),
+    Command(
         "evaluate depth",
         "depth-map metrics (coverage, MAE, RMSE, AbsRel, % under thresholds) against GT depth",
         "colmap_pvs.evaluate:EvaluateDepthConfig",
