@@ -6,18 +6,21 @@ other data. The shipped default weights are made this way (see the model card): 
 the previous release and of its fine-tune on real images with ``stage_neighbourhood`` 2.
 
 Every floating-point tensor of the state dicts (weights, biases, BatchNorm running statistics)
-is averaged with ``weights``; integer buffers (BatchNorm's ``num_batches_tracked``) and the model
-config are taken from checkpoint ``config_from``. All checkpoints must hold the same tensors
-(names and shapes); configs that differ only in parameter-free switches (the sparse prior and
-guidance, ``stage_neighbourhood``) average fine, and the differences are logged.
+is averaged with ``weights``; integer buffers (BatchNorm's ``num_batches_tracked``), the model
+config and the ``step`` are taken from checkpoint ``config_from``. All checkpoints must hold the
+same tensors (names and shapes); configs that differ only in parameter-free switches
+(:data:`PARAMETER_FREE_SWITCHES`: the sparse prior and guidance, ``stage_neighbourhood``, ...)
+average fine, other differences are warned about.
 
 The output is a normal checkpoint (:func:`colmap_pvs.model.save_checkpoint`, atomic) that also
 records its recipe: ``averaged_from`` (path, sha256, weight and step of each input) and the
-resolved ``average_config``, also written next to it as ``STEM.average_config.json``.
+resolved ``average_config`` (weights and ``config_from`` resolved), also written next to it as
+``STEM.average_config.json`` (an old one is removed first).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -32,7 +35,14 @@ from .model import PVSNet, load_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["AverageWeightsConfig", "average_weights", "config_path"]
+__all__ = ["PARAMETER_FREE_SWITCHES", "AverageWeightsConfig", "average_weights", "config_path"]
+
+#: ``PVSNetConfig`` fields that change no tensor's meaning: inputs may differ in them silently.
+PARAMETER_FREE_SWITCHES = frozenset({
+    "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
+    "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
+    "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype",
+})
 
 
 @dataclass(frozen=True)
@@ -132,8 +142,16 @@ def average_weights(config: AverageWeightsConfig) -> Path:
     base_cfg = config_to_dict(base_model.config)
     for path, model in zip(paths, models, strict=True):
         differs = sorted(k for k, v in config_to_dict(model.config).items() if base_cfg.get(k) != v)
-        if differs:
-            logger.info("%s: model config differs from the output's in %s", path, differs)
+        switches = [k for k in differs if k in PARAMETER_FREE_SWITCHES]
+        others = [k for k in differs if k not in PARAMETER_FREE_SWITCHES]
+        if switches:
+            logger.info("%s: parameter-free switches differ from the output's: %s", path, switches)
+        if others:
+            logger.warning(
+                "%s: model config differs from the output's (taken from %s) in %s: its tensors were "
+                "trained for another network; check the average before using it",
+                path, paths[base_index], others,
+            )
     averaged = {}
     for key, value in base_state.items():
         if value.is_floating_point():
@@ -149,15 +167,16 @@ def average_weights(config: AverageWeightsConfig) -> Path:
         {"path": str(p), "sha256": file_sha256(p), "weight": w, "step": int(meta.get("step", 0))}
         for p, w, meta in zip(paths, weights, metas, strict=True)
     ]
-    resolved = config_to_dict(config)
-    resolved["weights"] = list(weights)
+    resolved = dataclasses.replace(config, weights=weights, config_from=base_index)
+    stale = config_path(config.output_path)
+    stale.unlink(missing_ok=True)  # never an old recipe beside a new checkpoint
     out = save_checkpoint(
         config.output_path,
         out_model,
         step=int(metas[base_index].get("step", 0)),
-        extra={"averaged_from": recipe, "average_config": resolved},
+        extra={"averaged_from": recipe, "average_config": config_to_dict(resolved)},
     )
-    save_config(config, config_path(out), averaged_from=recipe)
+    save_config(resolved, config_path(out), averaged_from=recipe)
     logger.info(
         "averaged %d checkpoints (weights %s) into %s",
         len(paths),

@@ -51,12 +51,18 @@ def test_weighted_mean_of_every_float_tensor(tmp_path: Path) -> None:
     assert meta["average_config"]["weights"] == [0.25, 0.75]
     saved = json.loads(config_path(out).read_text())
     assert saved["config"]["checkpoints"] == [str(a), str(b)]
+    assert saved["config"]["weights"] == [0.25, 0.75] and saved["config"]["config_from"] == 1
+    assert saved["averaged_from"] == recipe
 
 
 def test_equal_weights_and_config_from_the_first(tmp_path: Path) -> None:
     paths = [_checkpoint(tmp_path / f"{i}.pt", seed=i) for i in range(3)]
+    config_path(tmp_path / "o.pt").write_text("an older run's recipe")
     out = average_weights(AverageWeightsConfig(checkpoints=tuple(paths), output_path=tmp_path / "o.pt",
-                                               config_from=0))
+                                               config_from=-3))
+    # the recipe next to it is this run's, resolved: equal weights, the first checkpoint's config
+    saved = json.loads(config_path(out).read_text())["config"]
+    assert saved["weights"] == pytest.approx([1 / 3] * 3) and saved["config_from"] == 0
     states = [load_checkpoint(p)[0].state_dict() for p in paths]
     so = load_checkpoint(out)[0].state_dict()
     key = next(k for k, v in so.items() if v.is_floating_point() and v.numel() > 1)
@@ -70,7 +76,21 @@ def test_checkpoints_with_different_tensors_are_refused(tmp_path: Path) -> None:
     wide = _checkpoint(tmp_path / "wide.pt", seed=2, feature_channels=(16, 8, 8))
     with pytest.raises(CheckpointError, match="wide.pt"):
         average_weights(AverageWeightsConfig(checkpoints=(a, wide), output_path=tmp_path / "o.pt"))
-    assert not (tmp_path / "o.pt").exists()
+    with pytest.raises(CheckpointError, match="missing.pt' does not exist"):
+        average_weights(AverageWeightsConfig(checkpoints=(a, tmp_path / "missing.pt"),
+                                             output_path=tmp_path / "o.pt"))
+    assert not (tmp_path / "o.pt").exists() and not config_path(tmp_path / "o.pt").exists()
+
+
+def test_other_config_differences_are_warned_about(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    a = _checkpoint(tmp_path / "a.pt", seed=1, sparse_prior=True)
+    b = _checkpoint(tmp_path / "b.pt", seed=2, planes_per_stage=(16,))  # same tensors, other network
+    with caplog.at_level("INFO", logger="colmap_pvs.average_weights"):
+        average_weights(AverageWeightsConfig(checkpoints=(a, b), output_path=tmp_path / "o.pt"))
+    warned = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "planes_per_stage" in warned[0].getMessage()
+    assert "sparse_prior" not in warned[0].getMessage()
+    assert any("sparse_prior" in r.getMessage() for r in caplog.records if r.levelname == "INFO")
 
 
 @pytest.mark.parametrize(

@@ -207,6 +207,7 @@ def test_shipped_checkpoint_end_to_end_through_colmap_fusion(tmp_path):
     )
     # v2 weights: 34.7 % at 96.3 % within 5 %; the v3 average (stage_neighbourhood 2): 29.1 % at 97.2 %
     assert geo.pooled.coverage_pct > 25
+    assert geo.pooled.rel_under_pct[0.05] > 90
     assert geo.pooled.absrel < 0.7 * metrics.pooled.absrel
     fused = fuse(FuseConfig(workspace_path=ws, output_path=tmp_path / "fused.ply", method="colmap"))
     assert fused.num_points > 2000
