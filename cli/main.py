@@ -117,14 +117,14 @@ COMMANDS: tuple[Command, ...] = (
         "--real_fraction); anti-noise strategy; resumable from OUTPUT_DIR/last.pt",
         "colmap_pvs.train:TrainConfig",
         "colmap_pvs.train:train",
-        "colmap_pvs.cli.reports:report_train",
+        "colmap_pvs.cli.reports:report_checkpoint",
     ),
     Command(
         "average-weights",
         "weighted average of PVSNet checkpoints (weights and their fine-tune: a 'model soup')",
         "colmap_pvs.average_weights:AverageWeightsConfig",
         "colmap_pvs.average_weights:average_weights",
-        "colmap_pvs.cli.reports:report_train",
+        "colmap_pvs.cli.reports:report_checkpoint",
         required=("checkpoints", "output_path"),
     ),
     Command(

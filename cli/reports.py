@@ -31,5 +31,6 @@ def report_stereo(result) -> str:
     return "\n".join(lines)
 
 
-def report_train(result) -> str:
+def report_checkpoint(result) -> str:
+    """``train`` and ``average-weights``: the checkpoint written."""
     return f"checkpoint: {result}"

@@ -9,7 +9,7 @@ Every floating-point tensor of the state dicts (weights, biases, BatchNorm runni
 is averaged with ``weights``; integer buffers (BatchNorm's ``num_batches_tracked``), the model
 config and the ``step`` are taken from checkpoint ``config_from``. All checkpoints must hold the
 same tensors (names and shapes); configs that differ only in parameter-free switches
-(:data:`PARAMETER_FREE_SWITCHES`: the sparse prior and guidance, ``stage_neighbourhood``, ...)
+(:data:`colmap_pvs.model.PARAMETER_FREE_FIELDS`: the sparse prior and guidance, ``stage_neighbourhood``, ...)
 average fine, other differences are warned about.
 
 The output is a normal checkpoint (:func:`colmap_pvs.model.save_checkpoint`, atomic) that also
@@ -31,18 +31,11 @@ import torch
 from .config import config_to_dict, save_config
 from .errors import CheckpointError, ConfigError
 from .evaluate import file_sha256
-from .model import PVSNet, load_checkpoint, save_checkpoint
+from .model import PARAMETER_FREE_FIELDS, PVSNet, load_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PARAMETER_FREE_SWITCHES", "AverageWeightsConfig", "average_weights", "config_path"]
-
-#: ``PVSNetConfig`` fields that change no tensor's meaning: inputs may differ in them silently.
-PARAMETER_FREE_SWITCHES = frozenset({
-    "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
-    "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
-    "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype",
-})
+__all__ = ["AverageWeightsConfig", "average_weights", "config_path"]
 
 
 @dataclass(frozen=True)
@@ -142,8 +135,8 @@ def average_weights(config: AverageWeightsConfig) -> Path:
     base_cfg = config_to_dict(base_model.config)
     for path, model in zip(paths, models, strict=True):
         differs = sorted(k for k, v in config_to_dict(model.config).items() if base_cfg.get(k) != v)
-        switches = [k for k in differs if k in PARAMETER_FREE_SWITCHES]
-        others = [k for k in differs if k not in PARAMETER_FREE_SWITCHES]
+        switches = [k for k in differs if k in PARAMETER_FREE_FIELDS]
+        others = [k for k in differs if k not in PARAMETER_FREE_FIELDS]
         if switches:
             logger.info("%s: parameter-free switches differ from the output's: %s", path, switches)
         if others:

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
-from .config import NETWORK_STRIDE, PVSNetConfig
+from .config import NETWORK_STRIDE, PARAMETER_FREE_FIELDS, PVSNetConfig
 from .pvsnet import PVSNet, PVSNetOutput
 
 __all__ = [
     "CHECKPOINT_FORMAT",
     "NETWORK_STRIDE",
+    "PARAMETER_FREE_FIELDS",
     "PVSNet",
     "PVSNetConfig",
     "PVSNetOutput",

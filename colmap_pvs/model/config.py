@@ -17,6 +17,13 @@ from ..errors import ConfigError
 NETWORK_STRIDE = 16
 #: Plane counts must be divisible by this (three-scale 3D U-Nets halve the depth axis twice).
 PLANE_MULTIPLE = 4
+#: :class:`PVSNetConfig` fields that add no parameters: checkpoints differing only in them hold the
+#: same tensors with the same meaning (they can be flipped on trained weights, or averaged).
+PARAMETER_FREE_FIELDS = frozenset({
+    "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
+    "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
+    "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype",
+})
 
 
 @dataclass(frozen=True)
