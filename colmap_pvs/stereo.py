@@ -104,6 +104,11 @@ GEOM_FULL_PARALLAX = 1.0
 #: share of the checked sources that agree on it: below most checked pixels, which are more often right.
 SPLAT_CONFIDENCE = 0.1
 
+#: :class:`StereoConfig` fields that override the checkpoint's :class:`~colmap_pvs.model.PVSNetConfig`
+#: field of the same name ("on" / "off"; "checkpoint" keeps it). Each must be one of
+#: :data:`colmap_pvs.model.PARAMETER_FREE_FIELDS` (pinned by a test): flipping it keeps the weights valid.
+MODEL_SWITCHES = ("sparse_guidance", "sparse_prior")
+
 #: Settings that change the photometric maps (with the checkpoint's sha256 and the sources).
 PHOTOMETRIC_SETTINGS = (
     "num_views", "max_image_size", "network_scale", "network_min_size", "min_confidence", "sparse_guidance",
@@ -471,7 +476,7 @@ def load_stereo_model(config: StereoConfig, device: torch.device):
         )
     model, meta = load_checkpoint(path, map_location="cpu")
     # Switches that add no parameters can be flipped on a trained model.
-    requested = {"sparse_guidance": config.sparse_guidance, "sparse_prior": config.sparse_prior}
+    requested = {name: getattr(config, name) for name in MODEL_SWITCHES}
     changes = {
         name: value == "on"
         for name, value in requested.items()

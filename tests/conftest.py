@@ -44,15 +44,26 @@ def analytic_scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return make_analytic_workspace(tmp_path_factory.mktemp("analytic") / "workspace")
 
 
-def make_tiny_checkpoint(path: Path, **overrides) -> Path:
-    """A tiny randomly initialised PVSNet checkpoint (for plumbing tests, not accuracy)."""
+def make_tiny_checkpoint(path: Path, *, seed: int = 0, step: int = 0, perturb: bool = False,
+                         **overrides) -> Path:
+    """A tiny randomly initialised PVSNet checkpoint (for plumbing tests, not accuracy), seeded by
+    ``seed``. ``perturb``: every tensor (BatchNorm statistics and integer buffers too) is moved by a
+    ``seed``-dependent amount, so that two seeds differ everywhere."""
     import torch
     from tiny_models import TINY_COARSE_KWARGS
 
     from colmap_pvs.model import PVSNet, PVSNetConfig, save_checkpoint
 
-    torch.manual_seed(0)
-    return save_checkpoint(path, PVSNet(PVSNetConfig(**{**TINY_COARSE_KWARGS, **overrides})))
+    torch.manual_seed(seed)
+    model = PVSNet(PVSNetConfig(**{**TINY_COARSE_KWARGS, **overrides}))
+    if perturb:
+        with torch.no_grad():
+            for value in model.state_dict().values():  # the state dict's tensors share the storage
+                if value.is_floating_point():
+                    value.add_(torch.rand_like(value))  # > 0: BatchNorm variances stay positive
+                else:
+                    value.fill_(100 + seed)
+    return save_checkpoint(path, model, step=step)
 
 
 @pytest.fixture(scope="session")

@@ -7,25 +7,17 @@ from pathlib import Path
 
 import pytest
 import torch
-from tiny_models import TINY_COARSE_KWARGS
+from conftest import make_tiny_checkpoint
 
 from colmap_pvs.average_weights import AverageWeightsConfig, average_weights, config_path
 from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.evaluate import file_sha256
-from colmap_pvs.model import PVSNet, PVSNetConfig, load_checkpoint, save_checkpoint
+from colmap_pvs.model import load_checkpoint
 
 
 def _checkpoint(path: Path, seed: int, step: int = 0, **overrides) -> Path:
     """A tiny random checkpoint whose every tensor (BatchNorm's too) depends on ``seed``."""
-    torch.manual_seed(seed)
-    model = PVSNet(PVSNetConfig(**{**TINY_COARSE_KWARGS, **overrides}))
-    with torch.no_grad():
-        for value in model.state_dict().values():  # the state dict's tensors share the storage
-            if value.is_floating_point():
-                value.add_(torch.rand_like(value))  # > 0: BatchNorm variances stay positive
-            else:
-                value.fill_(100 + seed)
-    return save_checkpoint(path, model, step=step)
+    return make_tiny_checkpoint(path, seed=seed, step=step, perturb=True, **overrides)
 
 
 def test_weighted_mean_of_every_float_tensor(tmp_path: Path) -> None:

@@ -238,8 +238,9 @@ def test_sparse_hints_follow_point_ids_in_any_order():
 
 
 def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_checkpoint):
-    from colmap_pvs.model import load_checkpoint
+    from colmap_pvs.model import PARAMETER_FREE_FIELDS, load_checkpoint
 
+    assert set(stereo_module.MODEL_SWITCHES) <= PARAMETER_FREE_FIELDS  # flipping keeps the weights valid
     base, _ = load_checkpoint(tiny_checkpoint, map_location="cpu")
     assert not base.config.sparse_prior and not base.config.sparse_guidance
     cfg = StereoConfig(workspace_path=tmp_path, checkpoint=tiny_checkpoint, device="cpu")
