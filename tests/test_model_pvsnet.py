@@ -220,3 +220,48 @@ def test_import_sets_no_global_torch_state():
         "assert s() == a, (a, s())\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_frustum_weights_ignore_a_source_that_sees_nothing():
+    """With ``frustum_weights`` a source facing away (every plane's point behind it) changes nothing:
+    the volumes the regularizers get and the depth with 3 views equal those with 2. Without them its
+    zero cost dilutes the mean."""
+    torch.manual_seed(0)
+    cfg = replace_config(TINY, truncation=False, frustum_weights=True)
+    model = PVSNet(cfg).eval()
+    plain = PVSNet(replace_config(cfg, frustum_weights=False)).eval()
+    plain.load_state_dict(model.state_dict())
+    images, K, poses, dmin, dmax = make_inputs(1, 3, 48, 64, seed=3)
+    poses[:, 1] = torch.eye(4)
+    poses[:, 1, 2, 3] = 0.2  # behind the reference on its axis: sees all it sees, with parallax
+    poses[:, 1, 0, 3] = 0.05
+    poses[:, 2] = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # faces away: sees none of it
+
+    def run(net, n):
+        volumes = []
+        hooks = [m.register_forward_pre_hook(lambda _m, args: volumes.append(args[0].clone()))
+                 for m in (net.coarse, *net.stages)]
+        with torch.inference_mode():
+            out = net(images[:, :n], K[:, :n], poses[:, :n], dmin, dmax)
+        for h in hooks:
+            h.remove()
+        return out.depth, volumes
+
+    two, v_two = run(model, 2)
+    three, v_three = run(model, 3)
+    _, v_two_plain = run(plain, 2)
+    _, v_diluted = run(plain, 3)
+    assert len(v_two) == cfg.num_stages
+    for a, b, c, d in zip(v_two, v_three, v_two_plain, v_diluted, strict=True):
+        torch.testing.assert_close(b, a, atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(c, a, atol=1e-6, rtol=1e-5)  # it sees all the reference sees
+        assert (d - a).abs().max() > 0.1 * a.abs().max()  # diluted by the blind source's zeros
+    torch.testing.assert_close(three, two, atol=1e-6, rtol=1e-6)
+
+
+def test_frustum_weights_train_with_gradients():
+    model = PVSNet(replace_config(TINY, frustum_weights=True)).train()
+    out = model(*make_inputs(1, 3, 32, 48))
+    sum(d.mean() for d in out.depths).backward()
+    grads = [p.grad for p in model.parameters() if p.requires_grad]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)

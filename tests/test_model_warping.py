@@ -141,3 +141,30 @@ def test_warping_gradcheck():
 
     assert torch.autograd.gradcheck(f, (src, planes))
     assert torch.autograd.gradcheck(f, (src, per_pixel))
+
+
+def test_inside_source_matches_projecting_each_pixel():
+    """``inside_source`` is true exactly where the pixel centre's point projects in front of the source
+    and within its image (and within ``valid_size`` when given)."""
+    from colmap_pvs.model.warping import homography_rays, inside_source
+
+    K = np.array([[52.0, 0.0, 31.0], [0.0, 50.0, 25.0], [0.0, 0.0, 1.0]])
+    T_src = _pose([0.1, -0.5, 0.05], [-0.6, 0.1, 0.2])
+    depths = torch.tensor([[0.7, 2.0, 9.0]], dtype=torch.float64)
+    Kt = torch.from_numpy(K)[None]
+    rays, b = homography_rays(Kt, Kt, torch.from_numpy(T_src)[None], H, W, torch.float64)
+    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    pix = np.stack([cols.ravel(), rows.ravel(), np.ones(H * W)])
+    for valid in (None, (40.0, 30.0)):
+        got = inside_source(rays, b, depths, H, W, valid).numpy()[0]
+        vw, vh = valid if valid is not None else (W, H)
+        for k, d in enumerate(depths[0].tolist()):
+            X = np.linalg.inv(K) @ pix * d
+            p = K @ (T_src[:3, :3] @ X + T_src[:3, 3:])
+            u, v = p[0] / p[2], p[1] / p[2]
+            want = ((p[2] > 0) & (u >= 0) & (u <= vw) & (v >= 0) & (v <= vh)).reshape(H, W)
+            assert 0 < want.sum() < H * W  # the case has both
+            assert (got[k] != want).mean() < 0.002  # pixels exactly on the border may round either way
+    behind = torch.from_numpy(np.diag([-1.0, 1.0, -1.0, 1.0]))[None]
+    rays, b = homography_rays(Kt, Kt, behind, H, W, torch.float64)
+    assert not inside_source(rays, b, depths, H, W).any()

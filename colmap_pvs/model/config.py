@@ -22,7 +22,7 @@ PLANE_MULTIPLE = 4
 PARAMETER_FREE_FIELDS = frozenset({
     "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
     "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
-    "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype",
+    "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype", "frustum_weights",
 })
 
 
@@ -55,6 +55,15 @@ class PVSNetConfig:
     truncation: bool = field(
         default=True,
         metadata={"help": "zero visibility maps below truncation_threshold before aggregation"},
+    )
+    frustum_weights: bool = field(
+        default=False,
+        metadata={
+            "help": "aggregation: weight each source's cost, per pixel and depth plane, by whether the "
+            "plane's point projects inside that source image (the cascade stages: by the share of their "
+            "planes that do), so a source that cannot see a pixel adds no zero cost to its mean; adds no "
+            "parameters, but a network must be trained with it (benchmarks/RESULTS.md, stop 35)"
+        },
     )
     truncation_threshold: float = field(
         default=0.05, metadata={"help": "visibility truncation threshold tau"}

@@ -56,6 +56,7 @@ from .warping import (
     homography_grid,
     homography_rays,
     hypothesis_depths,
+    inside_source,
     plane_range,
     relative_pose,
     scale_intrinsics,
@@ -268,15 +269,18 @@ class PVSNet(nn.Module):
         for i in range(1, N):
             with record_function("pvsnet.coarse_cost"):
                 cost = self._two_view_cost(feats[0], K, cam_from_world, i, plane_depths, 0)
+            weight = None
             if self.visibility_net is not None:
                 with record_function("pvsnet.visibility"):
                     vis = self.visibility_net(to_volume_format(cost, cfg.channels_last))  # [B, 1, h, w]
                 if cfg.truncation:
                     vis = truncate_visibility(vis, cfg.truncation_threshold)
                 vis_maps.append(vis)
-                acc.add(cost, vis)
-            else:
-                acc.add(cost, None)
+                weight = vis
+            if cfg.frustum_weights:  # [B, D, h, w]: no weight where the plane's point misses the source
+                inside = self._inside(K, cam_from_world, i, plane_depths, (h, w), (W / 4, H / 4))
+                weight = inside if weight is None else weight * inside
+            acc.add(cost, weight)
             del cost
         agg = acc.result()
         del acc
@@ -317,7 +321,12 @@ class PVSNet(nn.Module):
             )
             hyp = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
             Kk = scale_intrinsics(intrinsics, 1.0 / scale)
-            weights = self._stage_weights(vis_maps, (h, w), N - 1)
+            frustum = None
+            if cfg.frustum_weights:  # the share of this stage's planes whose point each source sees
+                valid = (W / scale, H / scale)
+                frustum = [self._inside(Kk, cam_from_world, i, hyp, (h, w), valid).mean(1, True)
+                           for i in range(1, N)]
+            weights = self._stage_weights(vis_maps, (h, w), N - 1, frustum)
             agg = None
             for i in range(1, N):
                 # Accumulates sum_i w_i C_i directly (w_i normalised beforehand): no per-view volume.
@@ -449,13 +458,25 @@ class PVSNet(nn.Module):
         return out
 
     def _stage_weights(
-        self, vis_maps: list[torch.Tensor], size: tuple[int, int], num_sources: int
+        self, vis_maps: list[torch.Tensor], size: tuple[int, int], num_sources: int,
+        frustum: list[torch.Tensor] | None = None,
     ) -> list[torch.Tensor] | list[float]:
-        """Normalised per-source weights ``[B, 1, *size]`` from the upsampled coarse visibility maps."""
-        if not vis_maps:
+        """Normalised per-source weights ``[B, 1, *size]`` from the upsampled coarse visibility maps,
+        times ``frustum`` ``[B, 1, *size]`` per source where given (:attr:`PVSNetConfig.frustum_weights`)."""
+        if not vis_maps and frustum is None:
             return [1.0 / num_sources] * num_sources  # plain mean
         up = [F.interpolate(v, size=size, mode="bilinear", align_corners=False) for v in vis_maps]
+        if frustum is not None:
+            up = [u * f for u, f in zip(up, frustum, strict=True)] if up else frustum
         return normalized_weights(up)
+
+    def _inside(self, K: torch.Tensor, cam_from_world: torch.Tensor, src: int, depths: torch.Tensor,
+                size: tuple[int, int], valid_size: tuple[float, float]) -> torch.Tensor:
+        """``[B, D, h, w]`` 1 where the reference pixel at each of ``depths`` projects inside source
+        ``src``'s image (``valid_size``: its content's size at this stage), else 0."""
+        h, w = size
+        rays, b = homography_rays(K[:, 0], K[:, src], relative_pose(cam_from_world, src), h, w, depths.dtype)
+        return inside_source(rays, b, depths, h, w, valid_size).to(depths.dtype)
 
     def _probability(self, logits: torch.Tensor, glog: torch.Tensor | None) -> torch.Tensor:
         """Softmax over depth of ``[B, D, h, w]`` logits; in probability-guidance mode times the

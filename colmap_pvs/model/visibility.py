@@ -60,7 +60,7 @@ def normalized_weights(weights: list[torch.Tensor]) -> list[torch.Tensor]:
 class CostAccumulator:
     """Running weighted mean of cost volumes, one source at a time (memory independent of ``N``).
 
-    ``add(cost [B, G, D, h, w], weight [B, 1, h, w] or None)``; ``result()`` returns
+    ``add(cost [B, G, D, h, w], weight [B, 1, h, w], per plane [B, D, h, w], or None)``; ``result()`` returns
     ``sum_i w_i C_i / sum_i w_i`` where ``sum_i w_i > WEIGHT_EPS`` and the plain mean of
     the ``C_i`` elsewhere (all views truncated). With ``weight=None`` for every view it is
     the plain mean. Without autograd the accumulation is in place (``cost`` may be reused

@@ -130,6 +130,26 @@ def grid_from_rays(
     return grid.view(B, D * height, width, 2)
 
 
+def inside_source(rays: torch.Tensor, b: torch.Tensor, depths: torch.Tensor, height: int, width: int,
+                  valid_size: tuple[float, float] | None = None, chunk: int = 8) -> torch.Tensor:
+    """``[B, D, height, width]`` bool: where the reference pixel at each depth of ``depths`` (``[B, D]``
+    or ``[B, D, height, width]``) projects in front of the source camera and inside the source map
+    (:func:`homography_rays` gives ``rays``, ``b``). ``valid_size`` ``(w, h)``: where the source's
+    image content ends (a map padded on the bottom and right); default the whole map. No gradient."""
+    B, D = depths.shape[:2]
+    vw, vh = valid_size if valid_size is not None else (width, height)
+    x_max, y_max = 2.0 * vw / width - 1.0, 2.0 * vh / height - 1.0
+    out = torch.empty(B, D, height, width, dtype=torch.bool, device=depths.device)
+    with torch.no_grad():
+        for d0 in range(0, D, chunk):
+            d1 = min(D, d0 + chunk)
+            grid = grid_from_rays(rays, b, depths[:, d0:d1].detach(), height, width)
+            gx, gy = grid[..., 0], grid[..., 1]
+            ok = (gx >= -1.0) & (gx <= x_max) & (gy >= -1.0) & (gy <= y_max)
+            out[:, d0:d1] = ok.view(B, d1 - d0, height, width)
+    return out
+
+
 def warp_features(src: torch.Tensor, grid: torch.Tensor, num_planes: int) -> torch.Tensor:
     """Bilinearly sample ``src`` ``[B, C, h, w]`` at ``grid`` ``[B, D*h, w, 2]`` -> ``[B, C, D, h, w]``.
 
