@@ -7,7 +7,9 @@ in front of that source and inside its image, and the source's own GT depth ther
 (not occluded; a source pixel without GT counts as seeing it). Prints, per source slot (best first;
 with ``--disturbed`` workspaces the last two are the far frames), the share of pixels inside and
 truly visible, the learned visibility's mean on truly visible and on hidden pixels, and how well it
-ranks them (AUC: the chance a visible pixel gets more than a hidden one)::
+ranks them (AUC: the chance a visible pixel gets more than a hidden one). The coarse grid is mapped
+onto the whole image, exact when the network's input needs no padding (540x360 at network scale
+0.8: 432x288, grid 108x72)::
 
     python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag T
     python benchmarks/visibility_check.py --tag T_disturbed

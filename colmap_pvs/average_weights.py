@@ -3,7 +3,7 @@
 Averaging the weights of a network and of its fine-tune ("WiSE-FT", Wortsman et al., CVPR 2022)
 often keeps what the fine-tune learned and loses less of what the starting weights did well on
 other data. The shipped default weights are made this way (see the model card): the average of
-the previous release and of its fine-tune on real images with ``stage_neighbourhood`` 2.
+the v2 release and of its fine-tune on real images (``stage_neighbourhood`` 2, ``frustum_weights``).
 
 Every floating-point tensor of the state dicts (weights, biases, BatchNorm running statistics)
 is averaged with ``weights``; integer buffers (BatchNorm's ``num_batches_tracked``), the model

@@ -36,6 +36,8 @@ SHIPPED_LIKE = PVSNetConfig(
     stage_channels=(8, 8),
     sparse_guidance=True,
     sparse_prior=True,
+    stage_neighbourhood=2,
+    frustum_weights=True,
 )
 
 

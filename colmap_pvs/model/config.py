@@ -18,7 +18,8 @@ NETWORK_STRIDE = 16
 #: Plane counts must be divisible by this (three-scale 3D U-Nets halve the depth axis twice).
 PLANE_MULTIPLE = 4
 #: :class:`PVSNetConfig` fields that add no parameters: checkpoints differing only in them hold the
-#: same tensors with the same meaning (they can be flipped on trained weights, or averaged).
+#: same tensors, so they can be averaged and the fields flipped on trained weights (whether a flip
+#: helps is measured: ``frustum_weights`` needs weights trained with it).
 PARAMETER_FREE_FIELDS = frozenset({
     "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
     "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
