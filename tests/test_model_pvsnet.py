@@ -273,11 +273,12 @@ def test_cost_accumulator_takes_per_plane_weights(grad):
     for w in weights:
         w[:, 1] = 0.0  # plane 1: no source sees it
     weights[0][:, 2] = 0.0  # plane 2: source 0 does not
-    expected = sum(c * w.unsqueeze(1) for c, w in zip(costs, weights)) / sum(weights).unsqueeze(1)
+    expected = sum(c * w.unsqueeze(1) for c, w in zip(costs, weights, strict=True))
+    expected = expected / sum(weights).unsqueeze(1)
     expected[:, :, 1] = sum(costs)[:, :, 1] / 3
     with torch.set_grad_enabled(grad):
         acc = CostAccumulator()
-        for c, w in zip(costs, weights):
+        for c, w in zip(costs, weights, strict=True):
             acc.add(c.clone(), w)
         got = acc.result()
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
