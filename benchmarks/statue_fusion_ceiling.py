@@ -28,6 +28,7 @@ from statue_fusion import DATA, WORK, make_workspace, plane_distances
 
 from colmap_pvs.io.maps import fusion_intrinsics, read_depth_map, write_depth_map, write_normal_map
 from colmap_pvs.io.sparse import read_sparse_model
+from colmap_pvs.synthetic.render import Renderer
 
 
 def statue_scene(mesh_path: Path, sfm: np.ndarray, max_distance: float):
@@ -52,18 +53,16 @@ def render_maps(scene, K_map: np.ndarray, cam_from_world: np.ndarray, size: tupl
     import open3d as o3d
 
     w, h = size
-    cols, rows = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    rays_cam = np.linalg.inv(K_map) @ np.stack([cols.ravel(), rows.ravel(), np.ones(h * w)])
-    rays_cam /= np.linalg.norm(rays_cam, axis=0)
-    R, t = cam_from_world[:, :3], cam_from_world[:, 3]
-    origins = np.broadcast_to(-R.T @ t, (h * w, 3))
-    rays = np.concatenate([origins, (R.T @ rays_cam).T], axis=1).astype(np.float32)
+    centre, dirs = Renderer.pixel_rays(K_map, cam_from_world, h, w)  # camera z = 1: t is the depth
+    dirs = dirs.reshape(-1, 3)
+    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=1).astype(np.float32)
     hit = scene.cast_rays(o3d.core.Tensor(rays))
-    distance = hit["t_hit"].numpy()
-    valid = np.isfinite(distance)
-    depth = np.where(valid, distance * rays_cam[2], 0.0).reshape(h, w).astype(np.float32)
-    normals = (R @ hit["primitive_normals"].numpy().T).T
-    normals[(normals * rays_cam.T).sum(axis=1) > 0] *= -1  # facing the camera
+    t = hit["t_hit"].numpy()
+    valid = np.isfinite(t)
+    depth = np.where(valid, t, 0.0).reshape(h, w).astype(np.float32)
+    normals = hit["primitive_normals"].numpy().astype(np.float64)
+    normals[(normals * dirs).sum(axis=1) > 0] *= -1  # facing the camera
+    normals = normals @ cam_from_world[:, :3].T
     normals[~valid] = 0.0
     return depth, normals.reshape(h, w, 3).astype(np.float32)
 

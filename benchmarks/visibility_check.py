@@ -25,6 +25,7 @@ import numpy as np
 import real_depth as rd
 
 from colmap_pvs.evaluate import read_gt_depth, resize_nearest
+from colmap_pvs.geometry import backproject_depth, scale_intrinsics
 from colmap_pvs.io.maps import read_array
 from colmap_pvs.io.sparse import read_sparse_model
 
@@ -54,10 +55,10 @@ def true_visibility(model, ref_name: str, src_name: str, gt_dir: Path, size: tup
     cam = model.cameras[ref.camera_id]
     gt = resize_nearest(read_gt_depth(gt_dir / ref_name, 0.001), h, w)
     valid = gt > 0
-    cols, rows = np.meshgrid((np.arange(w) + 0.5) * cam.width / w, (np.arange(h) + 0.5) * cam.height / h)
-    rays = np.linalg.inv(cam.K) @ np.stack([cols[valid], rows[valid], np.ones(valid.sum())])
+    K_grid = scale_intrinsics(cam.K, w / cam.width, h / cam.height)
+    points = backproject_depth(gt, K_grid)[valid].T  # [3, P] in the reference camera
     R, t = ref.cam_from_world[:, :3], ref.cam_from_world[:, 3]
-    world = R.T @ (rays * gt[valid] - t[:, None])
+    world = R.T @ (points - t[:, None])
     src = model.image_by_name(src_name)
     src_cam = model.cameras[src.camera_id]
     p = src_cam.K @ (src.cam_from_world[:, :3] @ world + src.cam_from_world[:, 3:])
