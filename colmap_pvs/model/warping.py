@@ -138,14 +138,17 @@ def inside_source(rays: torch.Tensor, b: torch.Tensor, depths: torch.Tensor, hei
     image content ends (a map padded on the bottom and right); default the whole map. No gradient."""
     B, D = depths.shape[:2]
     vw, vh = valid_size if valid_size is not None else (width, height)
-    x_max, y_max = 2.0 * vw / width - 1.0, 2.0 * vh / height - 1.0
     out = torch.empty(B, D, height, width, dtype=torch.bool, device=depths.device)
     with torch.no_grad():
         for d0 in range(0, D, chunk):
             d1 = min(D, d0 + chunk)
-            grid = grid_from_rays(rays, b, depths[:, d0:d1].detach(), height, width)
-            gx, gy = grid[..., 0], grid[..., 1]
-            ok = (gx >= -1.0) & (gx <= x_max) & (gy >= -1.0) & (gy <= y_max)
+            part = depths[:, d0:d1].detach()
+            d = part.reshape(B, d1 - d0, 1 if part.dim() == 2 else height * width)
+            # p = depth * rays + b (as in grid_from_rays); inside: z > 0, 0 <= p_x / z <= w, 0 <= p_y / z <= h
+            z = torch.addcmul(b[:, 2:3], rays[:, 2:3], d)
+            px = torch.addcmul(b[:, 0:1], rays[:, 0:1], d)
+            py = torch.addcmul(b[:, 1:2], rays[:, 1:2], d)
+            ok = (z > _Z_EPS) & (px >= 0) & (px <= vw * z) & (py >= 0) & (py <= vh * z)
             out[:, d0:d1] = ok.view(B, d1 - d0, height, width)
     return out
 
