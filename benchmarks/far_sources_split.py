@@ -1,0 +1,122 @@
+"""Where do far sources cost accuracy? Errors split by whether a far frame sees the pixel (hololens-dev).
+
+The ``disturbed`` setting of ``hololens_quick.py`` replaces 2 of the 4 best sources by far-away
+frames. This script reads three of its workspaces, run on the same references:
+
+- ``--clean``: the 4 best sources (``T_clean`` of ``hololens_quick.py --tag T --disturbed``);
+- ``--disturbed``: the 2 best + 2 far frames (``T_disturbed``);
+- ``--control``: the same 2 best sources alone, N = 3 (``T3_clean`` of ``--num_views 3 --tag T3``),
+
+and splits every reference's GT pixels in two: those that at least one of its far frames truly sees
+(the GT point projects inside that frame and its own GT depth agrees within 5 %, as in
+``visibility_check.py``) and the rest. For each map kind it prints MAE, AbsRel and the % within 5 %
+of each setting on each part, over the pixels that all three settings estimate::
+
+    python benchmarks/hololens_quick.py --stride 3 --offset 0 --disturbed --tag T
+    python benchmarks/hololens_quick.py --stride 3 --offset 0 --num_views 3 --tag T3
+    python benchmarks/far_sources_split.py --clean T_clean --disturbed T_disturbed --control T3_clean
+
+On the pixels no far frame sees, the disturbed setting has the information of the control (N = 3) and
+no more; only on the others can the far frames make up for the two good views they replace.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import real_depth as rd
+from visibility_check import true_visibility
+
+from colmap_pvs.evaluate import read_gt_depth, resize_nearest
+from colmap_pvs.io.maps import read_depth_map
+from colmap_pvs.io.sparse import read_sparse_model
+
+KINDS = ("photometric", "geometric", "filled")
+
+
+def stats(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float]:
+    """MAE (metres), AbsRel and % within 5 % of the ``(pred, gt)`` pairs in ``rows`` (1-D, > 0)."""
+    pred, gt = np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
+    err = np.abs(pred - gt)
+    rel = err / gt
+    return float(err.mean()), float(rel.mean()), float(100.0 * (rel < 0.05).mean())
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--clean", required=True, help="workspace under WORK/quick with the 4 best sources")
+    p.add_argument("--disturbed", required=True, help="workspace with 2 best + 2 far sources")
+    p.add_argument("--control", required=True, help="workspace with the 2 best sources alone (N = 3)")
+    p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
+    p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
+    p.add_argument("--far", type=int, default=2, help="the disturbed setting's far frames (its last sources)")
+    a = p.parse_args()
+    if not (a.data / "depth").is_dir():
+        print(f"hololens-dev data not found at {a.data}; nothing to do")
+        return 2
+    spaces = {k: a.work_dir / "quick" / t for k, t in
+              (("clean", a.clean), ("disturbed", a.disturbed), ("control", a.control))}
+    for label, ws in spaces.items():
+        if not (ws / "stereo" / "provenance").is_dir():
+            print(f"{label} workspace {ws} has no stereo maps: run benchmarks/hololens_quick.py first")
+            return 2
+    metrics = spaces["disturbed"] / "metrics.photometric.json"
+    if not metrics.is_file():
+        print(f"{metrics} is missing: run benchmarks/hololens_quick.py --disturbed first")
+        return 2
+    refs = sorted(json.loads(metrics.read_text())["config"]["images"])
+    model = read_sparse_model(spaces["disturbed"] / "sparse")
+    # per kind and setting: the (pred, gt) of the pixels seen by a far frame, and of the rest
+    pooled: dict[tuple[str, str, bool], list[tuple[np.ndarray, np.ndarray]]] = {}
+    seen_share = []
+    for name in refs:
+        prov = spaces["disturbed"] / "stereo" / "provenance" / f"{name}.photometric.json"
+        far = json.loads(prov.read_text())["settings"]["sources"][-a.far :]
+        gt = read_gt_depth(a.data / "depth" / name, 0.001)
+        h, w = gt.shape
+        seen = np.zeros((h, w), bool)
+        for src in far:
+            seen |= true_visibility(model, name, src, a.data / "depth", (w, h))[1]
+        for kind in KINDS:
+            maps = {}
+            for label, ws in spaces.items():
+                path = ws / "stereo" / "depth_maps" / f"{name}.{kind}.bin"
+                if path.is_file():
+                    d = read_depth_map(path)
+                    maps[label] = d if d.shape == (h, w) else resize_nearest(d, h, w)
+            if len(maps) < len(spaces):
+                continue
+            common = (gt > 0) & np.logical_and.reduce([d > 0 for d in maps.values()])
+            if kind == "photometric":
+                seen_share.append((seen[gt > 0].sum(), (gt > 0).sum()))
+            for label, d in maps.items():
+                for part in (True, False):
+                    m = common & (seen == part)
+                    pooled.setdefault((kind, label, part), []).append((d[m], gt[m]))
+    if not pooled:
+        print("no reference has maps in all three workspaces")
+        return 2
+    s, n = np.sum(seen_share, axis=0)
+    print(f"{len(refs)} references; a far frame sees {100 * s / n:.1f} % of the GT pixels")
+    print("| maps | pixels | share | 4 best | 2 best + 2 far | 2 best (N = 3) |")
+    print("|---|---|---|---|---|---|")
+    for kind in KINDS:
+        if (kind, "clean", True) not in pooled:
+            continue
+        sizes = {part: sum(r[0].size for r in pooled[(kind, "clean", part)]) for part in (True, False)}
+        for part in (True, False):
+            cells = []
+            for label in spaces:
+                mae, absrel, under = stats(pooled[(kind, label, part)])
+                cells.append(f"{1000 * mae:.0f} mm / {absrel:.4f} / {under:.1f}")
+            share = 100 * sizes[part] / max(1, sum(sizes.values()))
+            part_name = "seen by a far frame" if part else "seen by no far frame"
+            print(f"| {kind} | {part_name} | {share:.1f} % | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
