@@ -18,6 +18,10 @@ of each setting on each part, over the pixels that all three settings estimate::
 
 On the pixels no far frame sees, the disturbed setting has the information of the control (N = 3) and
 no more; only on the others can the far frames make up for the two good views they replace.
+
+``--picture OUT.jpg --picture_refs A B``: one row per named reference: the image with the pixels a far
+frame sees tinted green | the relative error of the photometric map with the 4 best sources | with
+2 best + 2 far | with the 2 best alone (0 black to 10 % and more yellow; no GT black).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import argparse
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import real_depth as rd
 from visibility_check import true_visibility
@@ -35,6 +40,8 @@ from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.io.sparse import read_sparse_model
 
 KINDS = ("photometric", "geometric", "filled")
+#: Relative error shown at full brightness in the picture.
+PICTURE_ERROR = 0.10
 
 
 def stats(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float]:
@@ -45,6 +52,25 @@ def stats(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, floa
     return float(err.mean()), float(rel.mean()), float(100.0 * (rel < 0.05).mean())
 
 
+def picture_row(image_path: Path, gt: np.ndarray, seen: np.ndarray, maps: list[np.ndarray]) -> np.ndarray:
+    """``[H, (1 + len(maps)) W, 3]`` BGR: the image with ``seen`` tinted green, then each map's relative
+    error against ``gt`` (inferno, 0 to :data:`PICTURE_ERROR`; black without GT)."""
+    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    h, w = gt.shape
+    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    tint = image.copy()
+    tint[seen] = (0.5 * tint[seen] + 0.5 * np.array([0, 255, 0])).astype(np.uint8)
+    tiles = [tint]
+    valid = gt > 0
+    for d in maps:
+        rel = np.where(valid & (d > 0), np.abs(d - gt) / np.maximum(gt, 1e-6), 0.0)
+        scaled = (np.clip(rel / PICTURE_ERROR, 0, 1) * 255).astype(np.uint8)
+        err = cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO)
+        err[~valid] = 0
+        tiles.append(err)
+    return np.concatenate(tiles, axis=1)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--clean", required=True, help="workspace under WORK/quick with the 4 best sources")
@@ -53,6 +79,8 @@ def main() -> int:
     p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
     p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
     p.add_argument("--far", type=int, default=2, help="the disturbed setting's far frames (its last sources)")
+    p.add_argument("--picture", type=Path, help="write the error picture (JPEG) of --picture_refs here")
+    p.add_argument("--picture_refs", nargs="*", default=[], help="references drawn in --picture")
     a = p.parse_args()
     if not (a.data / "depth").is_dir():
         print(f"hololens-dev data not found at {a.data}; nothing to do")
@@ -70,6 +98,7 @@ def main() -> int:
     refs = sorted(json.loads(metrics.read_text())["config"]["images"])
     model = read_sparse_model(spaces["disturbed"] / "sparse")
     # per kind and setting: the (pred, gt) of the pixels seen by a far frame, and of the rest
+    picture_rows = []
     pooled: dict[tuple[str, str, bool], list[tuple[np.ndarray, np.ndarray]]] = {}
     seen_share = []
     for name in refs:
@@ -92,6 +121,8 @@ def main() -> int:
             common = (gt > 0) & np.logical_and.reduce([d > 0 for d in maps.values()])
             if kind == "photometric":
                 seen_share.append((seen[gt > 0].sum(), (gt > 0).sum()))
+                if name in a.picture_refs:
+                    picture_rows.append(picture_row(a.data / "images" / name, gt, seen, list(maps.values())))
             for label, d in maps.items():
                 for part in (True, False):
                     m = common & (seen == part)
@@ -115,6 +146,9 @@ def main() -> int:
             share = 100 * sizes[part] / max(1, sum(sizes.values()))
             part_name = "seen by a far frame" if part else "seen by no far frame"
             print(f"| {kind} | {part_name} | {share:.1f} % | " + " | ".join(cells) + " |")
+    if a.picture is not None and picture_rows:
+        cv2.imwrite(str(a.picture), np.concatenate(picture_rows, axis=0), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        print(f"picture: {a.picture} ({len(picture_rows)} references)")
     return 0
 
 
