@@ -97,8 +97,8 @@ def main() -> int:
         return 2
     refs = sorted(json.loads(metrics.read_text())["config"]["images"])
     model = read_sparse_model(spaces["disturbed"] / "sparse")
-    # per kind and setting: the (pred, gt) of the pixels seen by a far frame, and of the rest
     picture_rows = []
+    # per kind and setting: the (pred, gt) of the pixels seen by a far frame, and of the rest
     pooled: dict[tuple[str, str, bool], list[tuple[np.ndarray, np.ndarray]]] = {}
     seen_share = []
     for name in refs:
