@@ -35,7 +35,7 @@ import numpy as np
 import real_depth as rd
 from visibility_check import true_visibility
 
-from colmap_pvs.evaluate import read_gt_depth, resize_nearest
+from colmap_pvs.evaluate import compute_depth_metrics, read_gt_depth, resize_nearest
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.io.sparse import read_sparse_model
 
@@ -45,11 +45,11 @@ PICTURE_ERROR = 0.10
 
 
 def stats(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float]:
-    """MAE (metres), AbsRel and % within 5 % of the ``(pred, gt)`` pairs in ``rows`` (1-D, > 0)."""
+    """MAE (metres), AbsRel and % within 5 % of the ``(pred, gt)`` pairs in ``rows`` (1-D, > 0), by
+    :func:`~colmap_pvs.evaluate.compute_depth_metrics` (as every other depth number of the project)."""
     pred, gt = np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows])
-    err = np.abs(pred - gt)
-    rel = err / gt
-    return float(err.mean()), float(rel.mean()), float(100.0 * (rel < 0.05).mean())
+    m = compute_depth_metrics(pred[None], gt[None], rel_thresholds=(0.05,), abs_thresholds=())
+    return m.mae, m.absrel, m.rel_under_pct[0.05]
 
 
 def picture_row(image_path: Path, gt: np.ndarray, seen: np.ndarray, maps: list[np.ndarray]) -> np.ndarray:
