@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-import colmap_pvs.stereo as stereo_module
+import colmap_pvs.stereo.context as stereo_module
 from colmap_pvs.io.maps import read_depth_map, save_depth_preview
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import PhotometricConfig, StereoConfig, run_stereo
 from colmap_pvs.views import ViewSelectionConfig, select_views
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "colmap-statue"
@@ -67,7 +67,8 @@ def run(ws: Path, ckpt: Path | None, size: int, robust: bool) -> dict[str, np.nd
     original = stereo_module.ViewSelectionConfig
     stereo_module.ViewSelectionConfig = functools.partial(original, depth_outlier_sigmas=sigmas)
     try:
-        run_stereo(StereoConfig(workspace_path=ws, checkpoint=ckpt, max_image_size=size, overwrite=True))
+        run_stereo(StereoConfig(workspace_path=ws, checkpoint=ckpt, overwrite=True,
+                                photometric=PhotometricConfig(max_image_size=size)))
     finally:
         stereo_module.ViewSelectionConfig = original
     maps = (ws / "stereo" / "depth_maps").glob("*.geometric.bin")

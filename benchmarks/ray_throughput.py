@@ -72,6 +72,7 @@ def _child(args: argparse.Namespace) -> None:
     """One setting: run the stereo step twice (compute, then the resume that finds all done)."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does
     start = time.perf_counter()
+    from colmap_pvs.config import config_from_dict
     from colmap_pvs.stereo import StereoConfig, run_stereo
 
     imported = time.perf_counter() - start  # paid by every command (the driver's own torch import)
@@ -79,9 +80,10 @@ def _child(args: argparse.Namespace) -> None:
     kw = dict(workspace_path=Path(args.workspace), max_image_size=args.max_image_size,
               num_views=args.num_views)
     if args.backend == "local":
-        config = StereoConfig(**kw, threads=args.threads)
+        config = config_from_dict(StereoConfig, dict(kw, threads=args.threads))
     else:
-        config = StereoConfig(**kw, backend="ray", ray_workers=args.workers, ray_worker_threads=1)
+        config = config_from_dict(StereoConfig, dict(kw, backend="ray", ray_workers=args.workers,
+                                                     ray_worker_threads=1))
     peak = [0.0]
     stop = threading.Event()
     sampler = threading.Thread(target=_worker_peak_rss_mb, args=(stop, peak), daemon=True)

@@ -317,13 +317,12 @@ def baseline_worker(spec: dict) -> dict:
 
 
 def stereo_worker(spec: dict) -> dict:
-    from colmap_pvs.stereo import StereoConfig, run_stereo
+    from colmap_pvs.stereo import PhotometricConfig, StereoConfig, run_stereo
 
     result = run_stereo(
         StereoConfig(
             workspace_path=Path(spec["workspace"]),
-            num_views=spec["num_views"],
-            max_image_size=spec["max_image_size"],
+            photometric=PhotometricConfig(num_views=spec["num_views"], max_image_size=spec["max_image_size"]),
             checkpoint=Path(spec["checkpoint"]),
             threads=spec["threads"],
             overwrite=True,

@@ -114,15 +114,18 @@ PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None]
 }
 
 
-def add_colmap_flags(parser: argparse.ArgumentParser) -> None:
-    """Add COLMAP's ``patch_match_stereo`` flags (values are translated by :func:`translate_colmap_flags`)."""
+def add_colmap_flags(parser: argparse.ArgumentParser, listed: bool = True) -> None:
+    """Add COLMAP's ``patch_match_stereo`` flags (values are translated by :func:`translate_colmap_flags`);
+    ``listed=False`` accepts them without listing them in ``--help``."""
     group = parser.add_argument_group(
         "COLMAP patch_match_stereo flags",
         "accepted so that `colmap patch_match_stereo` command lines work unchanged; flags without a "
         "meaning for a learned network are named in a warning",
-    )
+    ) if listed else parser
     for flag, translate in PATCH_MATCH_STEREO_FLAGS.items():
-        if translate is None:
+        if not listed:
+            help_text = argparse.SUPPRESS
+        elif translate is None:
             help_text = "accepted, no meaning here (ignored with a warning)"
         else:
             help_text = str(translate.__doc__)

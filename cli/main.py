@@ -14,7 +14,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
-import dataclasses
+import difflib
 import importlib
 import json
 import logging
@@ -25,7 +25,13 @@ from pathlib import Path
 
 from colmap_pvs import __version__
 from colmap_pvs.cli.colmap_flags import add_colmap_flags, translate_colmap_flags
-from colmap_pvs.config import add_config_arguments, config_from_args, config_from_dict
+from colmap_pvs.config import (
+    add_config_arguments,
+    config_flags,
+    config_from_dict,
+    flags_to_dict,
+    merge_configs,
+)
 from colmap_pvs.errors import ColmapPVSError, ConfigError
 
 logger = logging.getLogger("colmap_pvs.cli")
@@ -151,8 +157,15 @@ def _load(ref: str):
     return getattr(importlib.import_module(module), attr)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line naming the flag (no usage dump)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="colmap-pvs",
         description="Learned dense multi-view stereo (PVSNet) for COLMAP workspaces, CPU first.",
     )
@@ -160,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log_level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     groups: dict[str, argparse._SubParsersAction] = {}
+    parser.by_command = {}  # command name -> its parser (for the hints of unrecognized flags)
     for cmd in COMMANDS:
         help_text = cmd.help if cmd.planned is None else f"{cmd.help} [not built yet: {cmd.planned}]"
         help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
@@ -170,32 +184,43 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[group] = gp.add_subparsers(dest=f"{group}_command", metavar="SUBCOMMAND",
                                                   required=True)
             p = groups[group].add_parser(leaf, help=help_text, description=help_text)
-            p.set_defaults(command=cmd.name)
         else:
-            p = sub.add_parser(cmd.name, help=help_text, description=help_text, aliases=list(cmd.aliases))
-            p.set_defaults(command=cmd.name)
-        if cmd.config is not None:
-            add_config_arguments(p, _load(cmd.config), required=cmd.required)
-            p.add_argument(
-                "--config_file",
-                dest="_config_file",
-                default=None,
-                metavar="JSON",
-                help="JSON file of config values, nested ones included (flags given on the command line "
-                "override it); a saved resolved config (e.g. a run's config.json) works too",
-            )
-        for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
-            p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
-                           help=f"same as --{name}")
-        if cmd.name == "stereo":
-            add_colmap_flags(p)
+            p = sub.add_parser(cmd.name, help=help_text, description=help_text)
+        parser.by_command[cmd.name] = p
+        _add_command_flags(p, cmd, colmap_help=False)
+        for alias in cmd.aliases:  # COLMAP's name: the same flags, and its --help lists COLMAP's own
+            a = sub.add_parser(alias, help=f"{cmd.name} under COLMAP's name; accepts COLMAP's flags",
+                               description=help_text)
+            _add_command_flags(a, cmd, colmap_help=True)
     return parser
+
+
+def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bool) -> None:
+    """The flags of ``cmd``'s config (one group per nested config) on its parser ``p``."""
+    p.set_defaults(command=cmd.name)
+    if cmd.config is not None:
+        add_config_arguments(p, _load(cmd.config), required=cmd.required)
+        p.add_argument(
+            "--config_file",
+            dest="_config_file",
+            default=None,
+            metavar="JSON",
+            help="JSON file of config values, nested ones included (flags given on the command line "
+            "override it); a saved resolved config (e.g. a run's config.json) works too",
+        )
+    for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
+        p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
+                       help=f"same as --{name}")
+    if cmd.aliases:  # COLMAP's patch_match_stereo flags: accepted by both, listed by COLMAP's name only
+        add_colmap_flags(p, listed=colmap_help)
 
 
 def _build_config(config_cls: type, args: argparse.Namespace):
     """Config from ``--config_file`` (if given) overridden by the flags given on the command line."""
+    flags = config_flags(config_cls)
+    given = {k: v for k, v in vars(args).items() if k in flags}
     if args._config_file is None:
-        return config_from_args(config_cls, args)
+        return config_from_dict(config_cls, given)
     path = Path(args._config_file)
     try:
         data = json.loads(path.read_text())
@@ -205,14 +230,26 @@ def _build_config(config_cls: type, args: argparse.Namespace):
         data = data["config"]
     if not isinstance(data, dict):
         raise ConfigError(f"--config_file {str(path)!r} must hold a JSON object")
-    fields = {f.name for f in dataclasses.fields(config_cls)}
-    data.update({k: v for k, v in vars(args).items() if k in fields})
-    return config_from_dict(config_cls, data)
+    data = flags_to_dict(config_cls, data, where=f"--config_file {str(path)!r}")
+    return config_from_dict(config_cls, merge_configs(data, flags_to_dict(config_cls, given)))
+
+
+def _unknown_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> str:
+    """One line for the arguments no parser took, with the nearest flag of the command."""
+    p = parser.by_command.get(getattr(args, "command", None), parser)
+    known = [o for a in p._actions for o in a.option_strings if o.startswith("--")]
+    bad = next((e for e in extra if e.startswith("-")), extra[0]).split("=")[0]
+    near = difflib.get_close_matches("--" + bad.lstrip("-").replace("-", "_"), known, n=1, cutoff=0.75)
+    hint = f"; did you mean {near[0]}?" if near else ""
+    return f"{p.prog}: error: unrecognized argument {bad!r}{hint} (see '{p.prog} --help')\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        sys.stderr.write(_unknown_flags(parser, args, extra))
+        return 2
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.command is None:
         parser.print_help()
@@ -224,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     config_cls = _load(cmd.config)
     function: Callable = _load(cmd.function)
     try:
-        if cmd.name == "stereo":
+        if cmd.aliases:
             for key, value in translate_colmap_flags(args).items():
                 setattr(args, key, value)
         config = _build_config(config_cls, args)

@@ -8,7 +8,13 @@ next to the outputs (:func:`save_config`) and inside every checkpoint.
 
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``,
 ``Literal[...]``, ``X | None`` of those, ``tuple[T, ...]`` of scalars and nested
-config dataclasses (nested ones are not exposed as flags).
+config dataclasses. A nested config whose field carries ``metadata={"flag_prefix": P}`` is exposed
+as flags: each of its fields ``F`` becomes ``--{P}{F}`` (or the absolute ``metadata["flag"]`` of
+that field), grouped under the nested field's ``metadata["title"]``; other nested configs are set
+through ``--config_file`` only. Mappings may use those flag names as keys as well as the nested
+form (:func:`config_from_dict`); a class may list options it no longer has in a ``REMOVED_OPTIONS``
+class attribute (flag name -> the value now fixed), which are then accepted with a warning when they
+hold that value.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import logging
 import math
 import numbers
 import os
@@ -30,6 +37,7 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_
 from .errors import ConfigError, OutputError
 
 C = TypeVar("C")
+logger = logging.getLogger(__name__)
 
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
@@ -60,15 +68,16 @@ def check_range(
         raise ConfigError(f"{name} must be a finite number{' ' + bounds if bounds else ''}, got {value!r}")
 
 
-def check_int_fields(cfg: Any) -> None:
+def check_int_fields(cfg: Any, prefix: str = "") -> None:
     """Raise :class:`ConfigError` naming the field unless every field of the dataclass ``cfg``
     annotated ``int`` holds an integer (not a bool). A ``float`` passed in Python code is refused;
     flags and config files go through :func:`config_from_dict`, which turns a whole-number value
-    (``"30"``, ``30.0``) into an ``int`` and refuses others."""
+    (``"30"``, ``30.0``) into an ``int`` and refuses others. ``prefix``: the flag prefix of a nested
+    config, so that the message names the flag."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         if f.type in (int, "int") and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
-            raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+            raise ConfigError(f"{prefix}{f.name} must be an integer, got {value!r}")
 
 
 def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
@@ -148,27 +157,144 @@ def _hints(cls: type) -> dict[str, Any]:
     return get_type_hints(cls)
 
 
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class FlagSpec:
+    """One command-line flag of a config: the ``path`` of field names to it (nested configs first),
+    its dataclass ``field`` and annotated ``type``, the argparse ``group`` title ("" at the top) and
+    its ``default`` (from the enclosing config's default instance where there is one)."""
+
+    path: tuple[str, ...]
+    field: dataclasses.Field
+    type: Any
+    group: str
+    default: Any
+
+
+def config_flags(cls: type, default: Any = None) -> dict[str, FlagSpec]:
+    """Flag name -> :class:`FlagSpec` of every field of ``cls`` that is a flag (module docstring)."""
+    hints = _hints(cls)
+    out: dict[str, FlagSpec] = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp, _ = _unwrap_optional(hints[f.name])
+        value = getattr(default, f.name) if default is not None else _field_default(f)
+        if not dataclasses.is_dataclass(tp):
+            out[f.metadata.get("flag", f.name)] = FlagSpec((f.name,), f, hints[f.name], "", value)
+            continue
+        if "flag_prefix" not in f.metadata:
+            continue
+        skip = set(f.metadata.get("exclude_flags", ()))
+        for flag, spec in config_flags(tp, value).items():
+            if spec.path[0] in skip:
+                continue
+            name = flag if "flag" in spec.field.metadata else f.metadata["flag_prefix"] + flag
+            if name in out:
+                raise TypeError(f"{cls.__name__}: two fields have the flag --{name}")
+            out[name] = FlagSpec((f.name, *spec.path), spec.field, spec.type,
+                                 spec.group or f.metadata.get("title", f.name), spec.default)
+    return out
+
+
+def _set_path(data: dict, path: tuple[str, ...], value: Any) -> None:
+    for key in path[:-1]:
+        inner = data.get(key)
+        if dataclasses.is_dataclass(inner):
+            inner = config_to_dict(inner)
+        if not isinstance(inner, dict):
+            inner = {}
+        data[key] = inner
+        data = inner
+    data[path[-1]] = value
+
+
+def merge_configs(base: dict, update: dict) -> dict:
+    """``base`` with ``update``'s values, nested mappings merged key by key."""
+    out = dict(base)
+    for k, v in update.items():
+        out[k] = merge_configs(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _suggest(word: str, choices: typing.Iterable[str]) -> str:
+    import difflib
+
+    near = difflib.get_close_matches(word.replace("-", "_"), list(choices), n=1, cutoff=0.6)
+    return f"; did you mean {near[0]!r}?" if near else ""
+
+
+def flags_to_dict(cls: type, flags: dict[str, Any], *, where: str | None = None) -> dict[str, Any]:
+    """The nested mapping of ``cls`` that the flag values ``flags`` (flag name -> value) set.
+
+    Keys that are field names of ``cls`` (nested configs as mappings or instances) pass through;
+    a key in ``cls.REMOVED_OPTIONS`` is dropped with a warning when it holds the value that option
+    now has, else refused.
+    """
+    where = where or cls.__name__
+    specs = config_flags(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    removed = getattr(cls, "REMOVED_OPTIONS", {})
+    data: dict[str, Any] = {}
+    for key, value in flags.items():
+        if key in specs:
+            _set_path(data, specs[key].path, value)
+        elif key in names:
+            value = config_to_dict(value) if dataclasses.is_dataclass(value) else value
+            data[key] = merge_configs(data[key], value) if isinstance(value, dict) and isinstance(
+                data.get(key), dict) else value
+        elif key in removed:
+            fixed = removed[key]
+            try:
+                same = _coerce(value, type(fixed), f"{where}.{key}") == fixed
+            except ConfigError:
+                same = False
+            if not same:
+                raise ConfigError(f"{where}: option {key!r} was removed; it is now always {fixed!r} "
+                                  f"(got {value!r}): drop it from the config")
+            logger.warning("%s: option %r was removed (it is always %r); ignoring it", where, key, fixed)
+        else:
+            raise ConfigError(f"{where}: unknown config key {key!r}{_suggest(key, [*specs, *names])}")
+    return data
+
+
 def config_from_dict(cls: type[C], data: dict[str, Any], *, _where: str | None = None) -> C:
-    """Build ``cls`` from a mapping. Unknown keys and ill-typed values raise :class:`ConfigError`."""
+    """Build ``cls`` from a mapping. Unknown keys and ill-typed values raise :class:`ConfigError`.
+
+    Keys are field names (nested configs as mappings, merged into their defaults) or flag names
+    (:func:`config_flags`).
+    """
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls!r} is not a dataclass")
     where = _where or cls.__name__
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ConfigError(f"{where}: unknown config key(s) {unknown}; known keys are {sorted(fields)}")
+    data = flags_to_dict(cls, data, where=where)
     hints = _hints(cls)
-    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    kwargs = {}
+    for k, v in data.items():
+        tp, _ = _unwrap_optional(hints[k])
+        if dataclasses.is_dataclass(tp) and isinstance(v, dict):
+            default = _field_default(fields[k])  # a partial mapping overrides the field's default
+            if default is not None:
+                v = merge_configs(config_to_dict(default), v)
+        kwargs[k] = _coerce(v, hints[k], f"{where}.{k}")
     return cls(**kwargs)
 
 
 def replace_config(cfg: C, **changes: Any) -> C:
-    """Like :func:`dataclasses.replace`, but type-checked and strict about unknown keys."""
-    merged = config_to_dict(cfg)
-    merged.update({k: (config_to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in changes.items()})
-    return config_from_dict(type(cfg), merged)
+    """Like :func:`dataclasses.replace`, but type-checked and strict about unknown keys; ``changes``
+    may name fields or flags (``replace_config(stereo_cfg, geom_fill=False)``)."""
+    changed = flags_to_dict(type(cfg), changes)
+    return config_from_dict(type(cfg), merge_configs(config_to_dict(cfg), changed))
 
 
 def _jsonable(value: Any) -> Any:
@@ -186,6 +312,17 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
         raise TypeError(f"{cfg!r} is not a dataclass instance")
     return {f.name: _jsonable(getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.init}
+
+
+def config_to_flags(cfg: Any) -> dict[str, Any]:
+    """Flag name -> JSON-compatible value of every flag of ``cfg`` (:func:`config_flags`)."""
+    out = {}
+    for flag, spec in config_flags(type(cfg)).items():
+        value = cfg
+        for name in spec.path:
+            value = getattr(value, name)
+        out[flag] = _jsonable(value)
+    return out
 
 
 def current_umask() -> int:
@@ -293,7 +430,8 @@ def add_config_arguments(
     exclude: typing.Iterable[str] = (),
     required: typing.Iterable[str] = (),
 ) -> None:
-    """Add one ``--field_name`` flag per scalar field of ``cls`` (COLMAP style).
+    """Add one ``--flag`` per flag of ``cls`` (:func:`config_flags`, COLMAP style), in one argparse
+    group per nested config.
 
     Defaults are not duplicated: a flag that is not given stays absent from the
     parsed namespace (``argparse.SUPPRESS``) and the dataclass default applies.
@@ -301,23 +439,16 @@ def add_config_arguments(
     """
     exclude = set(exclude)
     required = set(required)
-    hints = _hints(cls)
-    for f in dataclasses.fields(cls):
-        if not f.init or f.name in exclude:
+    groups: dict[str, Any] = {}
+    for flag, spec in config_flags(cls).items():
+        if flag in exclude:
             continue
-        tp, _optional = _unwrap_optional(hints[f.name])
-        if dataclasses.is_dataclass(tp):
-            continue
-        default = (
-            f.default
-            if f.default is not dataclasses.MISSING
-            else (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
-        )
-        help_text = _field_help(f)
-        if f.name not in required:
-            help_text = f"{help_text} (default: {_jsonable(default)})".strip()
+        tp, _optional = _unwrap_optional(spec.type)
+        help_text = _field_help(spec.field)
+        if flag not in required:
+            help_text = f"{help_text} (default: {_jsonable(spec.default)})".strip()
         help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
-        kwargs: dict[str, Any] = {"dest": f.name, "help": help_text, "default": argparse.SUPPRESS}
+        kwargs: dict[str, Any] = {"dest": flag, "help": help_text, "default": argparse.SUPPRESS}
         origin = get_origin(tp)
         if origin is Literal:
             kwargs["choices"] = list(get_args(tp))
@@ -334,15 +465,17 @@ def add_config_arguments(
             kwargs["type"] = str if tp is Path else tp
         else:
             continue
-        if f.name in required:
+        if flag in required:
             kwargs["required"] = True
-        parser.add_argument(f"--{f.name}", **kwargs)
+        if spec.group not in groups:
+            groups[spec.group] = parser.add_argument_group(spec.group) if spec.group else parser
+        groups[spec.group].add_argument(f"--{flag}", **kwargs)
 
 
 def config_from_args(cls: type[C], args: argparse.Namespace, **overrides: Any) -> C:
     """Build ``cls`` from the flags that were given on the command line (plus ``overrides``)."""
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    data = {k: v for k, v in vars(args).items() if k in names}
+    specs = config_flags(cls)
+    data = {k: v for k, v in vars(args).items() if k in specs}
     data.update(overrides)
     return config_from_dict(cls, data)
 

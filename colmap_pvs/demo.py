@@ -124,7 +124,7 @@ def run_demo(config: DemoConfig) -> DemoResult:
 
     start = time.perf_counter()
     checkpoint = (
-        Path(config.checkpoint) if config.checkpoint is not None else Path(stereo_module.DEFAULT_CHECKPOINT)
+        Path(config.checkpoint) if config.checkpoint is not None else Path(stereo_module.config.DEFAULT_CHECKPOINT)
     )
     if not checkpoint.is_file():
         raise CheckpointError(
@@ -170,11 +170,12 @@ def run_demo(config: DemoConfig) -> DemoResult:
     stereo_module.run_stereo(
         stereo_module.StereoConfig(
             workspace_path=out,
-            num_views=config.num_views,
             checkpoint=checkpoint,
             previews=True,
             threads=config.threads,
-            max_image_size=max(config.width, config.height),
+            photometric=stereo_module.PhotometricConfig(
+                num_views=config.num_views, max_image_size=max(config.width, config.height)
+            ),
         )
     )
     stages["stereo"] = time.perf_counter() - t

@@ -36,10 +36,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import atomic_write_bytes, config_to_dict, make_temp_dir, save_config
+from .config import (
+    atomic_write_bytes,
+    config_to_dict,
+    config_to_flags,
+    make_temp_dir,
+    replace_config,
+    save_config,
+)
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.images import check_image_file
+from .stereo.config import StereoConfig
 
 logger = logging.getLogger(__name__)
 
@@ -61,8 +69,8 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "matching": ("matcher", "exhaustive_max_images"),
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
-    # the weights by their content, wherever they are
-    "stereo": ("max_image_size", "num_views", "network_scale", "checkpoint_sha256"),
+    # every stereo setting that changes the maps, and the weights by their content, wherever they are
+    "stereo": ("stereo", "checkpoint_sha256"),
     "fusion": ("fusion_method",),
     "mesh": ("mesh", "mesh_depth"),
 }
@@ -97,27 +105,7 @@ class ReconstructConfig:
     undistort_max_image_size: int = field(
         default=-1, metadata={"help": "longest side of the undistorted images; -1 keeps the size"}
     )
-    max_image_size: int = field(default=640, metadata={"help": "stereo: longest image side for inference"})
-    num_views: int = field(default=5, metadata={"help": "stereo: views per reference (reference + sources)"})
-    network_scale: float = field(
-        default=0.8,
-        metadata={"help": "stereo: the network's size as a multiple of the map's (0.25-2; above 1: thin "
-                  "structures, at about scale^2 the time)"},
-    )
-    checkpoint: Path | None = field(
-        default=None, metadata={"help": "stereo: model checkpoint; default: the shipped checkpoint"}
-    )
-    backend: Literal["local", "ray"] = field(
-        default="local", metadata={"help": "stereo: local, or ray (one task per image on a Ray cluster)"}
-    )
-    ray_address: str = field(default="", metadata={"help": "stereo: Ray address; empty starts a local Ray"})
-    ray_workers: int = field(default=0, metadata={"help": "stereo: Ray workers; 0: fill the CPUs"})
-    ray_worker_threads: int = field(default=1, metadata={"help": "stereo: torch threads per Ray worker"})
     fusion_method: Literal["pvs", "colmap"] = field(default="pvs", metadata={"help": "fusion method"})
-    previews: bool = field(
-        default=True,
-        metadata={"help": "stereo: PNG previews of depth, normals, confidence (dense/stereo/previews)"},
-    )
     mesh: bool = field(default=True, metadata={"help": "build a Poisson mesh of the fused cloud"})
     mesh_depth: int = field(default=9, metadata={"help": "Poisson octree depth"})
     num_threads: int = field(default=-1, metadata={"help": "CPU threads for SfM and meshing; -1 = all"})
@@ -134,24 +122,23 @@ class ReconstructConfig:
             metadata={"help": "stop after this stage (run the rest later: finished stages are reused)"},
         )
     )
+    stereo: StereoConfig = field(
+        default_factory=lambda: StereoConfig(workspace_path=Path("dense"), previews=True),
+        metadata={"flag_prefix": "", "title": "stereo", "exclude_flags": ("workspace_path", "overwrite"),
+                  "help": "the stereo step's settings (its workspace is WORKSPACE/dense)"},
+    )
 
     def __post_init__(self) -> None:
         if self.max_num_features < 16:
             raise ConfigError(f"max_num_features must be >= 16, got {self.max_num_features}")
         if not 0.0 < self.sift_peak_threshold < 1.0:
             raise ConfigError(f"sift_peak_threshold must be in (0, 1), got {self.sift_peak_threshold}")
-        if self.num_views < 2:
-            raise ConfigError(f"num_views must be >= 2, got {self.num_views}")
         if self.exhaustive_max_images < 2:
             raise ConfigError(f"exhaustive_max_images must be >= 2, got {self.exhaustive_max_images}")
         if self.num_threads == 0 or self.num_threads < -1:
             raise ConfigError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
         if not 1 <= self.mesh_depth <= 16:
             raise ConfigError(f"mesh_depth must be in [1, 16], got {self.mesh_depth}")
-        if not 0.25 <= self.network_scale <= 2.0:
-            raise ConfigError(f"network_scale must be in [0.25, 2], got {self.network_scale}")
-        if 0 < self.max_image_size < 16:
-            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 
 
 @dataclass
@@ -262,7 +249,10 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
-        **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "checkpoint")},
+        **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
+        # what the stereo maps depend on (the checkpoint by its content, above)
+        "stereo": {k: v for k, v in config_to_flags(config.stereo).items()
+                   if k not in ("workspace_path", "overwrite", "previews", "checkpoint")},
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 
@@ -270,6 +260,9 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
 def _describe_change(key: str, old, new) -> str:
     if key == "photos":
         return f"the photos ({old.get('count')} -> {new.get('count')} files; names or sizes changed)"
+    if key == "stereo":
+        changed = [f"--{k} {old.get(k)} -> {v}" for k, v in new.items() if old.get(k) != v]
+        return "stereo settings " + ", ".join(changed)
     if key == "checkpoint_sha256":
         return f"the checkpoint's content (sha256 {str(old)[:12]} -> {str(new)[:12]})"
     return f"{key} {old} -> {new}"
@@ -467,7 +460,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
         ConfigError: a finished stage was made with other settings and ``overwrite`` is not set.
         CheckpointError: no checkpoint given and none shipped.
     """
-    from .stereo import DEFAULT_CHECKPOINT
+    from .stereo.config import DEFAULT_CHECKPOINT
 
     image_dir = Path(config.image_path)
     root = Path(config.workspace_path)
@@ -479,7 +472,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
             f"image folder {str(image_dir)!r} has {len(names)} image(s); at least 2 are needed"
         )
     needs_stereo = config.stop_after not in ("features", "matching", "mapping", "undistort")
-    if needs_stereo and config.checkpoint is None and not Path(DEFAULT_CHECKPOINT).is_file():
+    if needs_stereo and config.stereo.checkpoint is None and not Path(DEFAULT_CHECKPOINT).is_file():
         from .errors import CheckpointError
 
         raise CheckpointError(
@@ -488,7 +481,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     _check_photos(image_dir, names)
     result = ReconstructResult(workspace_path=root, num_images=len(names))
     prog = _Progress(root, result)
-    checkpoint = Path(config.checkpoint) if config.checkpoint is not None else Path(DEFAULT_CHECKPOINT)
+    checkpoint = Path(config.stereo.checkpoint or DEFAULT_CHECKPOINT)
     prog.settings = _current_settings(config, names, checkpoint)
     _check_provenance(config, prog, root)  # before anything is written
     root.mkdir(parents=True, exist_ok=True)
@@ -513,7 +506,7 @@ def _reconstruct(
     from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
     from .io.workspace import UndistortConfig, detect_workspace, undistort
     from .mesh import DEFAULT_MESH_NAME, MeshConfig, mesh
-    from .stereo import StereoConfig, run_stereo
+    from .stereo import run_stereo
 
     image_dir = Path(config.image_path)
     total = time.perf_counter()
@@ -584,21 +577,8 @@ def _reconstruct(
         for stale in (fused, vis_path_of(fused), meshed):
             stale.unlink(missing_ok=True)
         prog.unmark("fusion", "mesh")
-        st = run_stereo(
-            StereoConfig(
-                workspace_path=dense,
-                num_views=config.num_views,
-                max_image_size=config.max_image_size,
-                network_scale=config.network_scale,
-                checkpoint=config.checkpoint,
-                previews=config.previews,
-                overwrite="stereo" in prog.overwrite,
-                backend=config.backend,
-                ray_address=config.ray_address,
-                ray_workers=config.ray_workers,
-                ray_worker_threads=config.ray_worker_threads,
-            )
-        )
+        st = run_stereo(replace_config(config.stereo, workspace_path=dense,
+                                       overwrite="stereo" in prog.overwrite))
         result.stereo_skipped = dict(st.skipped)
         prog.mark("stereo")
         prog.stop()

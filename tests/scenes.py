@@ -342,3 +342,20 @@ def read_ply_vertices(path: Path) -> np.ndarray:
         elif parts[:1] == ["property"] and in_vertex:
             fields.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
     return np.frombuffer(data, dtype=np.dtype(fields), count=count, offset=end)
+
+
+def stereo_config(**flags):
+    """A :class:`~colmap_pvs.stereo.StereoConfig` from flag names (``num_views=3, geom_fill=False``),
+    as the command line and ``--config_file`` give them."""
+    from colmap_pvs.config import config_from_dict
+    from colmap_pvs.stereo import StereoConfig
+
+    return config_from_dict(StereoConfig, flags)
+
+
+def reconstruct_config(**flags):
+    """A :class:`~colmap_pvs.reconstruct.ReconstructConfig` from flag names (stereo's included)."""
+    from colmap_pvs.config import config_from_dict
+    from colmap_pvs.reconstruct import ReconstructConfig
+
+    return config_from_dict(ReconstructConfig, flags)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -10,12 +9,14 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import make_tiny_checkpoint
+from scenes import stereo_config
 
 from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
+from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.evaluate import file_sha256
 from colmap_pvs.model import load_checkpoint
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import run_stereo
 from colmap_pvs.train import real_dataset
 from colmap_pvs.train.real_dataset import RealDatasetConfig, RealMVSDataset
 from colmap_pvs.train.selfsup import selfsup_loss
@@ -104,7 +105,7 @@ def test_adaptation_lowers_the_self_supervised_loss(workspace, base):
 
 def test_stereo_runs_adaptation_first(workspace, base):
     result = run_stereo(
-        StereoConfig(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
+        stereo_config(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
                      adapt_steps=2, min_confidence=0.0)
     )
     assert result.processed and result.adapt_seconds > 0 and result.adapt_seconds_per_image > 0
@@ -125,7 +126,7 @@ def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, b
         return crop(label, *args, **kwargs)
 
     monkeypatch.setattr(real_dataset, "crop_label_map", spy)
-    cfg = StereoConfig(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
+    cfg = stereo_config(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
                        adapt_steps=2, min_confidence=0.0, adapt_pseudo_labels="filled")
     result = run_stereo(cfg)
     assert crops and not any(crops)
@@ -145,7 +146,7 @@ def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, b
     assert not crops and not again.processed and sorted(again.already_done) == names
     assert again.adapt_seconds == pytest.approx(meta["seconds"])
     # other label settings: adapted again, on the labels of a new base run
-    redo = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
+    redo = run_stereo(replace_config(cfg, geom_max_depth_error=0.05))
     assert crops and not any(crops) and sorted(redo.processed) == names
     new_meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
     assert new_meta["fingerprint"]["labels"] != meta["fingerprint"]["labels"]
@@ -159,6 +160,6 @@ def test_bad_adaptation_settings():
     with pytest.raises(ConfigError, match="pseudo_labels"):
         AdaptConfig(steps=1, pseudo_labels="dense")
     with pytest.raises(ConfigError, match="adapt_steps"):
-        StereoConfig(workspace_path=Path("ws"), adapt_pseudo_labels="geometric")
+        stereo_config(workspace_path=Path("ws"), adapt_pseudo_labels="geometric")
     with pytest.raises(ConfigError, match="geom_fill"):
-        StereoConfig(workspace_path=Path("ws"), adapt_steps=5, adapt_pseudo_labels="filled", geom_fill=False)
+        stereo_config(workspace_path=Path("ws"), adapt_steps=5, adapt_pseudo_labels="filled", geom_fill=False)

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from colmap_pvs.cli.colmap_flags import translate_colmap_flags
 from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.train import TrainConfig
@@ -24,9 +25,44 @@ def test_every_built_command_has_a_config_and_function():
         assert cmd.planned is not None or (cmd.config and cmd.function)
 
 
-def test_unknown_flag_is_rejected():
-    with pytest.raises(SystemExit):
-        main(["stereo", "--workspace_path", "w", "--no_such_flag", "1"])
+def test_unknown_flag_is_rejected(capsys):
+    assert main(["stereo", "--workspace_path", "w", "--no_such_flag", "1"]) == 2
+    assert "unrecognized argument '--no_such_flag'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("typed", "meant"), [("--num-views", "--num_views"),
+                                              ("--max_imagesize", "--max_image_size"),
+                                              ("--geom-fill", "--geom_fill")])
+def test_mistyped_flag_gets_one_line_with_did_you_mean(capsys, typed, meant):
+    assert main(["stereo", "--workspace_path", "w", typed, "5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"did you mean {meant}?" in err and "usage:" not in err
+
+
+def test_bad_flag_value_is_one_line_naming_the_flag(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["stereo", "--workspace_path", "w", "--max_image_size", "big"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--max_image_size" in err and "'big'" in err and "usage:" not in err
+
+
+def test_stereo_help_groups_flags_by_pass_and_lists_colmap_flags_only_under_colmaps_name(capsys):
+    for command in ("stereo", "patch_match_stereo"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        out = capsys.readouterr().out
+        flags = {line.split()[0].split("=")[0] for line in out.splitlines() if line.startswith("  --")}
+        assert "--geom_min_consistent" in flags and "geometric pass:" in out and "dense completion:" in out
+        if command == "stereo":
+            assert len(flags) <= 45, sorted(flags)
+            assert not any(f.startswith("--PatchMatchStereo.") for f in flags)
+        else:
+            assert "--PatchMatchStereo.max_image_size" in flags
+    # accepted by both names
+    args = build_parser().parse_args(["stereo", "--workspace_path", "w",
+                                      "--PatchMatchStereo.max_image_size", "320"])
+    assert translate_colmap_flags(args) == {"max_image_size": 320}
 
 
 def test_config_file_with_nested_values_and_flag_override(tmp_path):

@@ -295,7 +295,7 @@ def test_plane_deviation_is_small_on_a_plane_and_large_off_it():
 def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     """Same agreement, more deviation from the local plane: lower confidence; no deviation: the
     visibility-weighted fraction of agreeing sources."""
-    from colmap_pvs.stereo import GEOM_DEVIATION_SCALE, geometric_confidence
+    from colmap_pvs.stereo.geometric import GEOM_DEVIATION_SCALE, geometric_confidence
 
     agree = np.ones((4, 2, 3), bool)
     agree[3] = False
@@ -312,7 +312,7 @@ def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     with pytest.raises(ShapeError):
         geometric_confidence(agree, vis, np.zeros((3, 3), np.float32))
     # An agreeing source with less parallax than GEOM_FULL_PARALLAX counts in proportion.
-    from colmap_pvs.stereo import GEOM_FULL_PARALLAX
+    from colmap_pvs.stereo.geometric import GEOM_FULL_PARALLAX
 
     parallax = np.full((4, 2, 3), 5.0 * GEOM_FULL_PARALLAX, np.float32)
     np.testing.assert_allclose(geometric_confidence(agree, vis, None, parallax), base, rtol=1e-6)

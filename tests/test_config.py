@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 import pytest
+from scenes import stereo_config
 
 from colmap_pvs.config import (
     add_config_arguments,
@@ -86,14 +87,16 @@ def test_cli_flags_come_from_the_dataclass():
 
 
 def test_stereo_config_built_in_python_refuses_a_float_for_an_int_field():
-    from colmap_pvs.stereo import StereoConfig
+    from colmap_pvs.stereo import CompletionConfig, PhotometricConfig
 
-    cfg = StereoConfig(workspace_path=Path("w"), geom_fill_segment_min_pixels=40)
-    assert cfg.geom_fill_segment_min_pixels == 40
-    bad = (("geom_fill_segment_min_pixels", 30.0), ("geom_fill_min_sources", 2.0), ("num_views", True))
-    for key, value in bad:
-        with pytest.raises(ConfigError, match=f"{key} must be an integer"):
-            StereoConfig(workspace_path=Path("w"), **{key: value})
+    cfg = stereo_config(workspace_path=Path("w"), geom_fill_segment_min_pixels=40)
+    assert cfg.completion.segment_min_pixels == 40
+    bad = ((CompletionConfig, "segment_min_pixels", 30.0, "geom_fill_segment_min_pixels"),
+           (CompletionConfig, "min_sources", 2.0, "geom_fill_min_sources"),
+           (PhotometricConfig, "num_views", True, "num_views"))
+    for cls, name, value, flag in bad:  # the message names the flag
+        with pytest.raises(ConfigError, match=f"{flag} must be an integer"):
+            cls(**{name: value})
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-import colmap_pvs.stereo as stereo_module
+import colmap_pvs.stereo.config as stereo_module
 from colmap_pvs.cli.main import main
 from colmap_pvs.demo import DemoConfig, run_demo
 from colmap_pvs.errors import CheckpointError, WorkspaceError

@@ -24,13 +24,13 @@ from pathlib import Path
 
 import pytest
 from conftest import make_tiny_checkpoint
+from scenes import reconstruct_config, stereo_config
 
 from colmap_pvs.cli.main import main
-from colmap_pvs.distributed import TaskGraph, graph_sources, run_task_graph, stereo_passes
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
-from colmap_pvs.reconstruct import ReconstructConfig
 from colmap_pvs.stereo import CONFIG_FILENAME, StereoConfig, run_stereo
+from colmap_pvs.stereo.ray import TaskGraph, graph_sources, run_task_graph, stereo_passes
 
 TEST_SECONDS = 120  # no test of this module may run longer (SIGALRM)
 
@@ -97,7 +97,7 @@ def test_task_graph_waits_for_every_photometric_map_with_splatted_seeds():
     assert sorted(graph.pop() for _ in range(3)) == [(n, "geometric") for n in "abc"]
     # the Ray driver's graph, with the default settings: geometric tasks wait for every photometric map
     plan = {"references": ["a", "b", "c"], "sources": sources, "auxiliary": []}
-    ray_graph = run_task_graph(StereoConfig(workspace_path=Path("x")), ("photometric", "geometric"), plan)
+    ray_graph = run_task_graph(stereo_config(workspace_path=Path("x")), ("photometric", "geometric"), plan)
     for _ in range(3):
         ray_graph.pop()
     ray_graph.finish(("a", "photometric"))
@@ -122,11 +122,11 @@ def test_task_graph_auxiliary_images_get_the_first_pass_only():
 
 
 def test_ray_flags_in_stereo_and_reconstruct():
-    stereo, rec = StereoConfig(workspace_path=Path("x")), ReconstructConfig(image_path=Path("i"),
+    stereo, rec = stereo_config(workspace_path=Path("x")), reconstruct_config(image_path=Path("i"),
                                                                             workspace_path=Path("w"))
-    for name in ("backend", "ray_address", "ray_workers", "ray_worker_threads"):
-        assert getattr(rec, name) == getattr(stereo, name)
-    assert stereo.backend == "local"
+    assert rec.stereo.backend == stereo.backend == "local" and rec.stereo.ray == stereo.ray
+    rec = reconstruct_config(image_path=Path("i"), workspace_path=Path("w"), backend="ray", ray_workers=3)
+    assert rec.stereo.backend == "ray" and rec.stereo.ray.workers == 3
     with pytest.raises(SystemExit):
         main(["stereo", "--workspace_path", "x", "--backend", "spark"])
 
@@ -189,7 +189,7 @@ def scene(tmp_path_factory):
 def _config(ws: Path, ckpt: Path, **kw) -> StereoConfig:
     base = dict(workspace_path=ws, checkpoint=ckpt, max_image_size=240, num_views=3, min_confidence=0.0,
                 backend="ray", ray_workers=2, ray_worker_threads=1)
-    return StereoConfig(**{**base, **kw})
+    return stereo_config(**{**base, **kw})
 
 
 def _copy(scene, tmp_path) -> Path:
@@ -367,7 +367,7 @@ def test_reconstruct_stereo_step_on_ray(ray_cluster, analytic_scene, tmp_path):
     from colmap_pvs.reconstruct import reconstruct
 
     src = analytic_scene["root"]
-    config = ReconstructConfig(image_path=src / "images", workspace_path=tmp_path / "out",
+    config = reconstruct_config(image_path=src / "images", workspace_path=tmp_path / "out",
                                input_path=src / "sparse", checkpoint=make_tiny_checkpoint(tmp_path / "t.pt"),
                                num_views=3, stop_after="stereo", backend="ray", ray_workers=1)
     reconstruct(config)
@@ -391,7 +391,7 @@ def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_pat
             shutil.rmtree(ws / "stereo" / sub)
         threads = torch.get_num_threads()
         try:
-            runs[backend] = run_stereo(StereoConfig(
+            runs[backend] = run_stereo(stereo_config(
                 workspace_path=ws, checkpoint=ckpt, num_views=3, max_image_size=160, min_confidence=0.0,
                 adapt_steps=2, threads=1, backend=backend, ray_workers=2, ray_worker_threads=1))
         finally:

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import pytest
 from conftest import make_tiny_checkpoint
+from scenes import reconstruct_config
 
 from colmap_pvs.cli.main import main
 from colmap_pvs.errors import CheckpointError, WorkspaceError
 from colmap_pvs.io.ply import read_point_cloud
-from colmap_pvs.reconstruct import ReconstructConfig, reconstruct
+from colmap_pvs.reconstruct import reconstruct
 
 
 def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, capsys):
@@ -45,7 +46,7 @@ def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, ca
 
     # A second run finds every finished output and recomputes nothing.
     mtime = (dense / "fused.ply").stat().st_mtime_ns
-    rerun = ReconstructConfig(
+    rerun = reconstruct_config(
         image_path=ws / "images",
         workspace_path=out,
         input_path=ws / "sparse",
@@ -68,18 +69,18 @@ def test_reconstruct_from_existing_model_and_resume(analytic_scene, tmp_path, ca
 
 
 def test_reconstruct_errors(tmp_path, monkeypatch):
-    import colmap_pvs.stereo as stereo_module
+    import colmap_pvs.stereo.config as stereo_module
 
     with pytest.raises(WorkspaceError, match="does not exist"):
-        reconstruct(ReconstructConfig(image_path=tmp_path / "nope", workspace_path=tmp_path / "o"))
+        reconstruct(reconstruct_config(image_path=tmp_path / "nope", workspace_path=tmp_path / "o"))
     (tmp_path / "imgs").mkdir()
     with pytest.raises(WorkspaceError, match="0 image"):
-        reconstruct(ReconstructConfig(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
+        reconstruct(reconstruct_config(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
     for i in range(2):
         (tmp_path / "imgs" / f"{i}.png").write_bytes(b"")
     monkeypatch.setattr(stereo_module, "DEFAULT_CHECKPOINT", tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match="missing.pt"):
-        reconstruct(ReconstructConfig(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
+        reconstruct(reconstruct_config(image_path=tmp_path / "imgs", workspace_path=tmp_path / "o"))
 
 
 @pytest.mark.slow
@@ -88,7 +89,7 @@ def test_fern_sfm_registers_every_image(shared_data_dir, tmp_path):
     if not images.is_dir():
         pytest.skip(f"{images} is missing")
     result = reconstruct(
-        ReconstructConfig(
+        reconstruct_config(
             image_path=images,
             workspace_path=tmp_path / "fern",
             single_camera=True,

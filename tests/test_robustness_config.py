@@ -49,4 +49,4 @@ def test_reconstruct_config_refuses_bad_values(key, value):
     from colmap_pvs.reconstruct import ReconstructConfig
 
     with pytest.raises(ConfigError, match=key):
-        ReconstructConfig(image_path=Path("i"), workspace_path=Path("w"), **{key: value})
+        config_from_dict(ReconstructConfig, {"image_path": "i", "workspace_path": "w", key: value})

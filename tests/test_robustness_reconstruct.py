@@ -12,11 +12,12 @@ import cv2
 import numpy as np
 import pytest
 from conftest import make_tiny_checkpoint
+from scenes import reconstruct_config, stereo_config
 
 from colmap_pvs.cli.main import main
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.io.maps import read_depth_map
-from colmap_pvs.reconstruct import ReconstructConfig, reconstruct
+from colmap_pvs.reconstruct import reconstruct
 
 GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d", re.MULTILINE)
 
@@ -47,36 +48,36 @@ def test_changed_settings_are_refused_or_recomputed(analytic_scene, tmp_path, ca
     assert max(read_depth_map(depth).shape) == 64  # nothing was touched
     # the network's scale reaches stereo and is one of its settings
     saved = json.loads((out / "dense" / "stereo" / "colmap_pvs_stereo.json").read_text())["config"]
-    assert saved["network_scale"] == 0.5
+    assert saved["photometric"]["network_scale"] == 0.5
     assert main([*argv, "--network_scale", "1.5"]) == 1
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "network_scale" in err[0] and "1.5" in err[0] and "stereo" in err[0]
 
     # With --overwrite only stereo and what follows it are recomputed.
-    config = ReconstructConfig(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse",
+    config = reconstruct_config(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse",
                                checkpoint=ckpt, num_views=3, mesh_depth=5, num_threads=1, max_image_size=48,
                                overwrite=True)
     result = reconstruct(config)
     assert "undistort" in result.resumed and "stereo" not in result.resumed and "fusion" not in result.resumed
     assert max(read_depth_map(depth).shape) == 48
     # ... and then the new settings are the workspace's: a plain rerun resumes everything.
-    result = reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False}))
+    result = reconstruct(reconstruct_config(**{**config.__dict__, "overwrite": False}))
     assert {"undistort", "stereo", "fusion", "mesh"} <= set(result.resumed)
 
     # The same checkpoint path with other weights is a changed checkpoint.
     make_tiny_checkpoint(ckpt, regularization_channels=8)
     with pytest.raises(ConfigError, match="checkpoint.*content"):
-        reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False}))
+        reconstruct(reconstruct_config(**{**config.__dict__, "overwrite": False}))
 
     # Another fusion method only recomputes fusion and mesh.
     make_tiny_checkpoint(ckpt)
     with pytest.raises(ConfigError, match="fusion_method"):
-        reconstruct(ReconstructConfig(**{**config.__dict__, "overwrite": False, "fusion_method": "colmap"}))
-    result = reconstruct(ReconstructConfig(**{**config.__dict__, "fusion_method": "colmap"}))
+        reconstruct(reconstruct_config(**{**config.__dict__, "overwrite": False, "fusion_method": "colmap"}))
+    result = reconstruct(reconstruct_config(**{**config.__dict__, "fusion_method": "colmap"}))
     assert "stereo" in result.resumed and "fusion" not in result.resumed
 
     # --overwrite with nothing changed recomputes every stage.
-    result = reconstruct(ReconstructConfig(**{**config.__dict__, "fusion_method": "colmap"}))
+    result = reconstruct(reconstruct_config(**{**config.__dict__, "fusion_method": "colmap"}))
     assert result.resumed == ["features", "matching", "mapping"]  # given by --input_path
 
 
@@ -88,7 +89,7 @@ def test_bad_photos_are_refused_before_sfm(analytic_scene, tmp_path):
     (images / "view_002.png").write_bytes(data[: len(data) // 3])
     pattern = r"2 of 5 photos.*view_001\.png.*empty.*view_002\.png.*truncated"
     with pytest.raises(WorkspaceError, match=pattern):
-        reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out"))
+        reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out"))
     assert not (tmp_path / "out").exists()
 
 
@@ -99,7 +100,7 @@ def test_sfm_stages_have_progress_bars_and_a_quiet_log(tmp_path, capfd):
     images.mkdir()
     for i in range(4):
         cv2.imwrite(str(images / f"{i}.png"), texture[50:450, 60 * i : 60 * i + 500])
-    result = reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out",
+    result = reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out",
                                            max_num_features=256, num_threads=1, stop_after="matching"))
     assert result.stage_seconds.keys() >= {"features", "matching"}
     err = capfd.readouterr().err
@@ -122,21 +123,28 @@ def test_pycolmap_log_goes_to_the_file_unless_disabled(tmp_path, capfd):
     assert folder is None and "loud message" in capfd.readouterr().err
 
 
-def test_network_scale_default_and_range_are_stereos(tmp_path):
-    """``reconstruct --network_scale`` repeats StereoConfig's default and range (reconstruct does not
-    import the stereo module, and torch with it, until it runs stereo)."""
-    from colmap_pvs.stereo import NETWORK_SCALE_MAX, StereoConfig
+def test_reconstruct_holds_a_stereo_config_with_stereos_defaults_and_checks(tmp_path):
+    """``reconstruct`` takes every stereo setting as the stereo step's own config (one source of
+    defaults and ranges), except its workspace and ``overwrite``; previews are on by default."""
+    from colmap_pvs.config import config_flags
+    from colmap_pvs.reconstruct import ReconstructConfig
+    from colmap_pvs.stereo import StereoConfig
+    from colmap_pvs.stereo.config import NETWORK_SCALE_MAX
 
-    rec = ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w")
-    assert rec.network_scale == StereoConfig(workspace_path=tmp_path).network_scale
+    rec = reconstruct_config(image_path=tmp_path, workspace_path=tmp_path / "w")
+    assert rec.stereo.photometric == stereo_config(workspace_path=tmp_path).photometric
+    assert rec.stereo.previews is True
+    flags = config_flags(ReconstructConfig)
+    own = {"workspace_path", "overwrite"}  # reconstruct's own; stereo's are set by reconstruct
+    assert all(flags[f].path[0] == "stereo" for f in config_flags(StereoConfig) if f not in own)
+    assert all(flags[f].path == (f,) for f in own)
     for ok in (0.25, NETWORK_SCALE_MAX):
-        ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=ok)
-        StereoConfig(workspace_path=tmp_path, network_scale=ok)
+        rec = reconstruct_config(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=ok,
+                                 geom_min_consistent=3)
+        assert rec.stereo.photometric.network_scale == ok and rec.stereo.geometric.min_consistent == 3
     for bad in (0.2, NETWORK_SCALE_MAX + 0.1):
         with pytest.raises(ConfigError, match="network_scale"):
-            ReconstructConfig(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=bad)
-        with pytest.raises(ConfigError, match="network_scale"):
-            StereoConfig(workspace_path=tmp_path, network_scale=bad)
+            reconstruct_config(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=bad)
 
 
 def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_path):
@@ -152,7 +160,7 @@ def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_pa
         cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
 
     def keypoints(peak: float, overwrite: bool = False) -> list[int]:
-        reconstruct(ReconstructConfig(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
+        reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
                                       sift_peak_threshold=peak, stop_after="features", overwrite=overwrite))
         with sqlite3.connect(tmp_path / "out" / "database.db") as db:
             return [r[0] for r in db.execute("SELECT rows FROM keypoints ORDER BY image_id")]
@@ -164,4 +172,4 @@ def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_pa
     assert len(low) == len(high) == 2
     assert all(lo > hi for lo, hi in zip(low, high, strict=True)), (low, high)
     with pytest.raises(ConfigError, match="sift_peak_threshold"):
-        ReconstructConfig(image_path=images, workspace_path=tmp_path / "x", sift_peak_threshold=0.0)
+        reconstruct_config(image_path=images, workspace_path=tmp_path / "x", sift_peak_threshold=0.0)

@@ -9,13 +9,14 @@ import sys
 
 import pytest
 import test_stereo
+from scenes import stereo_config
 
 from colmap_pvs.cli.main import main
 from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
 from colmap_pvs.io.cleanup import remove_orphan_temps
 from colmap_pvs.io.workspace import read_patch_match_cfg
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import run_stereo
 
 synthetic_ws = test_stereo.synthetic_ws  # the same small synthetic workspace (a module fixture)
 _copy = test_stereo._copy
@@ -55,7 +56,7 @@ def test_stereo_removes_orphans_of_a_killed_run(synthetic_ws, tmp_path, tiny_che
     orphan = ws / "stereo" / "depth_maps" / name
     orphan.parent.mkdir(parents=True, exist_ok=True)
     orphan.write_bytes(b"half a map")
-    run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=32, num_views=2))
+    run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=32, num_views=2))
     assert not orphan.exists()
     assert not list(ws.rglob("*.tmp"))
 

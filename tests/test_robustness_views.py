@@ -68,7 +68,7 @@ def test_outlier_rejection_can_be_switched_off():
 
 
 def test_only_outlier_hints_are_dropped():
-    from colmap_pvs.stereo import HINT_OUTLIER_FACTOR, drop_outlier_hints
+    from colmap_pvs.stereo.context import HINT_OUTLIER_FACTOR, drop_outlier_hints
 
     assert HINT_OUTLIER_FACTOR == 2.0
     hints = np.array([[5.0, 3.5, 30.0, 1.0, 0.0, 9.0, 2.5]], dtype=np.float32)

@@ -10,9 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scenes import stereo_config
 
 import colmap_pvs.stereo as stereo_module
+import colmap_pvs.stereo.config as stereo_config_module
 from colmap_pvs.cli.main import main
+from colmap_pvs.config import replace_config
 from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
@@ -20,7 +23,13 @@ from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, re
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import context as stereo_context
+from colmap_pvs.stereo import filled as stereo_filled
+from colmap_pvs.stereo import geometric as stereo_geometric
+from colmap_pvs.stereo import network as stereo_network
+from colmap_pvs.stereo import outputs as stereo_outputs
+from colmap_pvs.stereo import photometric as stereo_photometric
+from colmap_pvs.stereo import run_stereo
 from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
 
 
@@ -39,13 +48,13 @@ def _copy(ws: Path, tmp_path: Path) -> Path:
 
 def test_stereo_refuses_to_run_without_weights(synthetic_ws, tmp_path, monkeypatch, capsys):
     ws = _copy(synthetic_ws, tmp_path)
-    monkeypatch.setattr(stereo_module, "DEFAULT_CHECKPOINT", tmp_path / "none.pt")
+    monkeypatch.setattr(stereo_config_module, "DEFAULT_CHECKPOINT", tmp_path / "none.pt")
     with pytest.raises(CheckpointError, match="--checkpoint"):
-        run_stereo(StereoConfig(workspace_path=ws))
+        run_stereo(stereo_config(workspace_path=ws))
     assert main(["stereo", "--workspace_path", str(ws)]) == 1
     assert "none.pt" in capsys.readouterr().err
     with pytest.raises(CheckpointError, match="missing.pt"):
-        run_stereo(StereoConfig(workspace_path=ws, checkpoint=tmp_path / "missing.pt"))
+        run_stereo(stereo_config(workspace_path=ws, checkpoint=tmp_path / "missing.pt"))
     assert not list((ws / "stereo" / "depth_maps").glob("*.bin"))
 
 
@@ -84,12 +93,12 @@ def test_stereo_cli_writes_colmap_maps_and_resumes(synthetic_ws, tmp_path, tiny_
     assert (ws / "stereo" / stereo_module.CONFIG_FILENAME).is_file()
     # A rerun resumes: nothing is recomputed unless --overwrite.
     first = (ws / "stereo" / "depth_maps" / f"{names[0]}.geometric.bin").stat().st_mtime_ns
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
                        min_confidence=0.0)
     res = run_stereo(cfg)
     assert res.processed == [] and sorted(res.already_done) == names
     assert res.geometric_processed == [] and sorted(res.geometric_done) == names
-    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+    res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
                                   max_image_size=64, overwrite=True))
     assert sorted(res.processed) == names
     assert (ws / "stereo" / "depth_maps" / f"{names[0]}.geometric.bin").stat().st_mtime_ns != first
@@ -101,11 +110,11 @@ def test_patch_match_cfg_explicit_sources_are_used(synthetic_ws, tmp_path, tiny_
     _, model = load_workspace(ws)
     names = sorted(im.name for im in model.images.values())
     write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", {names[0]: [names[3], names[1]]})
-    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
+    res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
     assert res.processed == [names[0]]
     assert res.sources[names[0]] == [names[3], names[1]]
     (ws / "stereo" / "patch-match.cfg").write_text(f"{names[1]}\n__all__\n{names[2]}\n__auto__, 1\n")
-    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48,
+    res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48,
                                   num_views=3))
     assert sorted(res.processed) == [names[1], names[2]]
     assert len(res.sources[names[1]]) == 2  # __all__ capped at num_views - 1
@@ -122,7 +131,7 @@ def test_geometric_check_slots_skip_unrelated_network_sources(synthetic_ws, tmp_
     ref = names[0]
     sources = {n: [m for m in names if m != n][:2] for n in names}
     write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48, num_views=3,
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48, num_views=3,
                        geom_num_sources=2, geom_fill=False)
     run_stereo(cfg)
     provenance = ws / "stereo" / "provenance"
@@ -157,7 +166,7 @@ def test_image_without_points_is_skipped_not_fatal(synthetic_ws, tmp_path, tiny_
     write_sparse_model(dataclasses.replace(model, images=images, points=points), ws / "sparse")
     (ws / "stereo" / "patch-match.cfg").unlink()
     with caplog.at_level("WARNING"):
-        res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
+        res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, max_image_size=48))
     assert victim.name in res.skipped and victim.name not in res.processed
     assert len(res.processed) == 3
     assert victim.name in caplog.text
@@ -171,7 +180,7 @@ def test_statue_runs_end_to_end(statue_workspace, tmp_path, tiny_checkpoint):
     for p in ws.rglob("*"):
         p.chmod(0o755 if p.is_dir() else 0o644)
     ws.chmod(0o755)
-    res = run_stereo(StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+    res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
                                   max_image_size=96, min_confidence=0.0))
     assert len(res.processed) == 23 and not res.skipped
     _, model = load_workspace(ws)
@@ -192,11 +201,11 @@ def test_shipped_checkpoint_end_to_end_through_colmap_fusion(tmp_path):
 
     from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
 
-    if not stereo_module.DEFAULT_CHECKPOINT.exists():
-        pytest.fail(f"the shipped checkpoint {stereo_module.DEFAULT_CHECKPOINT} is missing")
+    if not stereo_config_module.DEFAULT_CHECKPOINT.exists():
+        pytest.fail(f"the shipped checkpoint {stereo_config_module.DEFAULT_CHECKPOINT} is missing")
     ws = tmp_path / "ws"
     make_synthetic_workspace(ws, SyntheticWorkspaceConfig(seed=11, width=160, height=120, num_views=5))
-    res = run_stereo(StereoConfig(workspace_path=ws, num_views=4, max_image_size=160, threads=2))
+    res = run_stereo(stereo_config(workspace_path=ws, num_views=4, max_image_size=160, threads=2))
     assert len(res.processed) == 5
     metrics = evaluate_depth(EvaluateDepthConfig(workspace_path=ws, gt=ws / "gt" / "depth_maps",
                                                  gt_pattern="{name}.npy", kind="photometric"))
@@ -230,7 +239,7 @@ def test_sparse_hints_follow_point_ids_in_any_order():
     img = Image(1, "a.png", 1, np.hstack([np.eye(3), np.zeros((3, 1))]), np.array([10, 20, 30]))
     pts = Points3D(ids, xyz, np.zeros((3, 3), np.uint8), np.zeros(3), np.arange(4), np.ones(3, np.int64))
     model = SparseModel({1: cam}, {1: img}, pts, {"a.png": 1})
-    hints = stereo_module._sparse_depth_map(model, img, K, 30, 40)
+    hints = stereo_context.image_sparse_depth(model, img, K, 30, 40)
     for p in xyz:
         u, v = (K @ p)[:2] / p[2]
         assert hints[int(v), int(u)] == pytest.approx(p[2])
@@ -240,13 +249,14 @@ def test_sparse_hints_follow_point_ids_in_any_order():
 def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_checkpoint):
     from colmap_pvs.model import PARAMETER_FREE_FIELDS, load_checkpoint
 
-    assert set(stereo_module.MODEL_SWITCHES) <= PARAMETER_FREE_FIELDS  # flipping keeps the weights valid
+    # flipping keeps the weights valid
+    assert set(stereo_config_module.MODEL_SWITCHES) <= PARAMETER_FREE_FIELDS
     base, _ = load_checkpoint(tiny_checkpoint, map_location="cpu")
     assert not base.config.sparse_prior and not base.config.sparse_guidance
-    cfg = StereoConfig(workspace_path=tmp_path, checkpoint=tiny_checkpoint, device="cpu")
+    cfg = stereo_config(workspace_path=tmp_path, checkpoint=tiny_checkpoint, device="cpu")
     for prior, guidance in (("on", "checkpoint"), ("on", "on"), ("off", "checkpoint")):
-        changed = dataclasses.replace(cfg, sparse_prior=prior, sparse_guidance=guidance)
-        model, path, _ = stereo_module.load_stereo_model(changed, stereo_module.resolve_device("cpu"))
+        changed = replace_config(cfg, sparse_prior=prior, sparse_guidance=guidance)
+        model, path, _ = stereo_network.load_stereo_model(changed, stereo_network.resolve_device("cpu"))
         assert path == tiny_checkpoint
         assert model.config.sparse_prior == (prior == "on")
         assert model.config.sparse_guidance == (guidance == "on")
@@ -257,7 +267,7 @@ def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_chec
 def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthetic_ws, tmp_path,
                                                                         tiny_checkpoint):
     ws = _copy(synthetic_ws, tmp_path)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
                        min_confidence=0.0)
     first = run_stereo(cfg)
     names = sorted(first.processed)
@@ -267,21 +277,21 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     assert sorted(first.filled_processed) == names and "filled.splat" in first.timings
     assert "filled.segments" in first.timings
     # A setting of the dense completion: only that pass is recomputed.
-    res = run_stereo(dataclasses.replace(cfg, geom_fill_min_sources=1))
+    res = run_stereo(replace_config(cfg, geom_fill_min_sources=1))
     assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
-    res = run_stereo(dataclasses.replace(cfg, geom_fill_min_sources=1, geom_fill_segments=False))
+    res = run_stereo(replace_config(cfg, geom_fill_min_sources=1, geom_fill_segments=False))
     assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
     assert "filled.segments" not in res.timings
     # A geometric setting: the geometric pass and the completion that reads it.
-    res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05))
+    res = run_stereo(replace_config(cfg, geom_max_depth_error=0.05))
     assert res.processed == [] and sorted(res.already_done) == names
     assert sorted(res.geometric_processed) == names and sorted(res.filled_processed) == names
-    assert run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05)).filled_processed == []
+    assert run_stereo(replace_config(cfg, geom_max_depth_error=0.05)).filled_processed == []
     # A photometric setting: both passes.
-    res = run_stereo(dataclasses.replace(cfg, geom_max_depth_error=0.05, min_confidence=0.01))
+    res = run_stereo(replace_config(cfg, geom_max_depth_error=0.05, min_confidence=0.01))
     assert sorted(res.processed) == names and sorted(res.geometric_processed) == names
     # A truncated map or a missing provenance file recomputes that reference's pass only.
-    cfg = dataclasses.replace(cfg, geom_max_depth_error=0.05, min_confidence=0.01)
+    cfg = replace_config(cfg, geom_max_depth_error=0.05, min_confidence=0.01)
     path = ws / "stereo" / "depth_maps" / f"{names[1]}.geometric.bin"
     path.write_bytes(path.read_bytes()[:100])
     (ws / "stereo" / "provenance" / f"{names[2]}.photometric.json").unlink()
@@ -294,7 +304,7 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     from conftest import make_tiny_checkpoint
 
     other = make_tiny_checkpoint(tmp_path / "other.pt", visibility_channels=6)
-    res = run_stereo(dataclasses.replace(cfg, checkpoint=other))
+    res = run_stereo(replace_config(cfg, checkpoint=other))
     assert sorted(res.processed) == names
 
 
@@ -305,7 +315,7 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0,
                        min_confidence=0.0, geom_consistency=False, geom_splat_min_sources=0)
     run_stereo(cfg)
     from scenes import render_view
@@ -319,7 +329,7 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
             depth[40:70, 60:100] *= 1.1
         write_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin", depth)
         write_normal_map(ws / "stereo" / "normal_maps" / f"{name}.photometric.bin", view["normals"])
-    ctx = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True))
+    ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True))
     ref = analytic_scene["names"][0]
     out = stereo_module.process_reference(ctx, ref, "geometric")
     assert out.status == "computed" and out.timings["consistency"] >= 0
@@ -336,8 +346,8 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
     # The confidence weighs each agreeing source by its parallax: asking for far more parallax than
     # any source has scales it down (same kept pixels); then the shipped value again.
-    strict = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True, overwrite=True))
-    monkeypatch.setattr(stereo_module, "GEOM_FULL_PARALLAX", 1e4)
+    strict = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True, overwrite=True))
+    monkeypatch.setattr(stereo_geometric, "GEOM_FULL_PARALLAX", 1e4)
     assert stereo_module.process_reference(strict, ref, "geometric").status == "computed"
     strict.flush()
     weak = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
@@ -381,16 +391,16 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     assert stereo_module.process_reference(ctx, ref, "filled").status == "done"
     # A source's geometric maps from other settings (another run) are not read.
     other = analytic_scene["names"][1]
-    assert stereo_module._current_geometric_provenance(ctx, other) is not None
+    assert stereo_filled.current_geometric_provenance(ctx, other) is not None
     prov_path = ws / "stereo" / "provenance" / f"{other}.geometric.json"
     prov = json.loads(prov_path.read_text())
     prov["settings"]["geom_max_depth_error"] = 0.5
     prov_path.write_text(json.dumps(prov))
-    assert stereo_module._current_geometric_provenance(ctx, other) is None
+    assert stereo_filled.current_geometric_provenance(ctx, other) is None
     assert stereo_module.process_reference(ctx, ref, "filled").status == "computed"  # its sources changed
     ctx.close()
     # Switching the completion off removes it; the geometric maps stay as they are.
-    res = run_stereo(dataclasses.replace(cfg, geom_consistency=True, geom_fill=False))
+    res = run_stereo(replace_config(cfg, geom_consistency=True, geom_fill=False))
     assert res.geometric_processed == [] and res.filled_processed == []
     assert not list(maps.glob("*.filled.bin"))
     assert not list((ws / "stereo" / "confidence_maps").glob("*.filled.bin"))
@@ -408,13 +418,13 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     maps, seeds_dir = ws / "stereo" / "depth_maps", ws / "stereo" / "seed_maps"
     block = np.zeros_like(truth, bool)
     block[40:70, 60:100] = True
-    off = dataclasses.replace(cfg, geom_consistency=True, geom_splat_min_sources=0)
+    off = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0)
     ctx = stereo_module.prepare_stereo(off)
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.close()
     dropped = read_depth_map(maps / f"{ref}.geometric.bin")
     assert (dropped[block] > 0).mean() < 0.02 and not (seeds_dir / f"{names[1]}.bin").exists()
-    on = dataclasses.replace(off, geom_splat_min_sources=3)
+    on = replace_config(off, geom_splat_min_sources=3)
     ctx = stereo_module.prepare_stereo(on)
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.close()
@@ -424,7 +434,7 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     assert np.median(np.abs(geo[added] / truth[added] - 1)) < 0.005  # the sources' exact depth
     np.testing.assert_array_equal(geo[dropped > 0], dropped[dropped > 0])  # the checked pixels as they were
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
-    assert conf[added].min() > 0 and conf[added].max() <= stereo_module.SPLAT_CONFIDENCE
+    assert conf[added].min() > 0 and conf[added].max() <= stereo_geometric.SPLAT_CONFIDENCE
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["settings"]["geom_splat_min_sources"] == 3
     assert set(prov["settings"]["splat_seeds"]) <= set(names)
@@ -436,17 +446,17 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     for n in on_demand:
         stamp = json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"]
         assert prov["settings"]["splat_seeds"][n] == stamp
-    res = run_stereo(dataclasses.replace(on, geom_fill=False))
+    res = run_stereo(replace_config(on, geom_fill=False))
     assert ref in res.geometric_done and sorted(res.geometric_processed) == sorted(set(names) - {ref})
     for n, seeds in on_demand.items():
         np.testing.assert_array_equal(read_array(seeds_dir / f"{n}.bin"), seeds)
     # A seed setting changes the sources' seeds and so the reference's pass; the splat setting is a
     # geometric one that leaves the seeds as they are: switching it off recomputes that pass only.
-    res = run_stereo(dataclasses.replace(on, geom_fill=False, geom_seed_depth_error=0.02))
+    res = run_stereo(replace_config(on, geom_fill=False, geom_seed_depth_error=0.02))
     assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
     stamps = {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
     assert all(stamps[n] != prov["settings"]["splat_seeds"][n] for n in on_demand)
-    res = run_stereo(dataclasses.replace(off, geom_fill=False, geom_seed_depth_error=0.02))
+    res = run_stereo(replace_config(off, geom_fill=False, geom_seed_depth_error=0.02))
     assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
     assert stamps == {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
@@ -462,7 +472,7 @@ def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0,
+    cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0,
                        min_confidence=0.0, geom_consistency=False)
     run_stereo(cfg)
     names, model = analytic_scene["names"], analytic_scene["model"]
@@ -486,7 +496,7 @@ def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analy
     ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.028)
     names = analytic_scene["names"]
     ref, truth = names[0], exact[names[0]]
-    geo_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_average_depth=False,
+    geo_cfg = replace_config(cfg, geom_consistency=True, geom_average_depth=False,
                                   geom_splat_min_sources=0)  # the kept pixels: the checked ones only
     run_stereo(geo_cfg)
     maps = ws / "stereo" / "depth_maps"
@@ -502,7 +512,7 @@ def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analy
     assert np.median(np.abs(filled[inner] / truth[inner] - 1)) < 0.005  # from the sources' exact maps
     # Seeds at the check's own tolerance: (nearly) every kept pixel is one, the block stays as it is.
     # The seed settings belong to the geometric pass: it is recomputed, then the completion.
-    res = run_stereo(dataclasses.replace(geo_cfg, geom_seed_min_consistent=1, geom_seed_depth_error=0.03))
+    res = run_stereo(replace_config(geo_cfg, geom_seed_min_consistent=1, geom_seed_depth_error=0.03))
     assert sorted(res.geometric_processed) == sorted(names) and sorted(res.filled_processed) == sorted(names)
     every = read_depth_map(maps / f"{ref}.filled.bin")
     seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")
@@ -520,10 +530,10 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     # exact photometric maps, but a block of the reference 10 % too far (and no seeds of the sources,
     # which would fill it without the re-estimate)
     ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
-    cfg = dataclasses.replace(cfg, geom_splat_min_sources=0)
+    cfg = replace_config(cfg, geom_splat_min_sources=0)
     names, model = analytic_scene["names"], analytic_scene["model"]
     calls = []
-    real = stereo_module.estimate_depth
+    real = stereo_photometric.estimate_depth
 
     def network(net, images, intrinsics, poses, depth_range, sparse_depth, device):
         """The tiny network's outputs, but the exact depth of the view (a network that gets it right)."""
@@ -533,17 +543,17 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
         assert depth.shape == exact[name].shape
         return exact[name].copy(), conf, vis, prior
 
-    monkeypatch.setattr(stereo_module, "estimate_depth", network)
+    monkeypatch.setattr(stereo_photometric, "estimate_depth", network)
     ref = names[0]
     block = np.zeros((120, 160), bool)
     block[40:70, 60:100] = True
-    plain = stereo_module.prepare_stereo(dataclasses.replace(cfg, geom_consistency=True))
+    plain = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True))
     assert stereo_module.process_reference(plain, ref, "geometric").status == "computed"
     plain.close()
     assert calls == []  # off by default: no second network run
     geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
     assert (geo[block] > 0).mean() < 0.02
-    re_cfg = dataclasses.replace(cfg, geom_consistency=True, geom_reestimate=True)
+    re_cfg = replace_config(cfg, geom_consistency=True, geom_reestimate=True)
     ctx = stereo_module.prepare_stereo(re_cfg)
     out = stereo_module.process_reference(ctx, ref, "geometric")
     ctx.close()
@@ -563,7 +573,7 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     # A rerun keeps it; the setting is a geometric one: switching it back recomputes that pass only.
     res = run_stereo(re_cfg)
     assert res.processed == [] and ref in res.geometric_done
-    res = run_stereo(dataclasses.replace(re_cfg, geom_reestimate=False))
+    res = run_stereo(replace_config(re_cfg, geom_reestimate=False))
     assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
     assert (read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")[block] > 0).mean() < 0.02
 
@@ -572,14 +582,14 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
                                                                      monkeypatch):
     ws = _copy(synthetic_ws, tmp_path)
     seen = []
-    real = stereo_module.estimate_depth
+    real = stereo_photometric.estimate_depth
 
     def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
         seen.append((images.shape[-2:], sparse_depth.shape, intrinsics[0].copy()))
         return real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
 
-    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+    monkeypatch.setattr(stereo_photometric, "estimate_depth", spy)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
                        min_confidence=0.0, network_scale=0.5, network_min_size=16, geom_consistency=False)
     res = run_stereo(cfg)
     names = sorted(res.processed)
@@ -594,12 +604,12 @@ def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws
         assert read_normal_map(ws_obj.normal_map_path(name, "photometric")).shape == (48, 64, 3)
     # the scale is a photometric setting: changing it recomputes the maps
     seen.clear()
-    again = run_stereo(dataclasses.replace(cfg, network_scale=1.0))
+    again = run_stereo(replace_config(cfg, network_scale=1.0))
     assert sorted(again.processed) == names and all(tuple(s) == (48, 64) for s, _, _ in seen)
     assert "upsample" not in again.timings
     # network_min_size: the network's longest side stays >= 40 px (scale 0.625 here, not 0.5)
     seen.clear()
-    run_stereo(dataclasses.replace(cfg, network_min_size=40))
+    run_stereo(replace_config(cfg, network_min_size=40))
     assert all(tuple(s) == (30, 40) for s, _, _ in seen)
 
 
@@ -611,7 +621,7 @@ def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_
     With 64 px maps the network's 128x96 input is the original enlarged bilinearly."""
     ws = _copy(synthetic_ws, tmp_path)
     seen = []
-    real = stereo_module.estimate_depth
+    real = stereo_photometric.estimate_depth
 
     def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
         depth, conf, vis, prior = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
@@ -621,8 +631,8 @@ def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_
         seen.append((images.copy(), sparse_depth.shape, intrinsics[0].copy(), pattern))
         return pattern, conf, vis, prior
 
-    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+    monkeypatch.setattr(stereo_photometric, "estimate_depth", spy)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
                        min_confidence=0.0, network_scale=2.0, network_min_size=16, geom_consistency=False,
                        sparse_prior="off")
     res = run_stereo(cfg)
@@ -648,12 +658,12 @@ def test_network_scale_above_one_reads_the_original_image_and_samples_the_depth_
     np.testing.assert_allclose(ray_map / ray_map[2], ray_net / ray_net[2], atol=1e-12)
     # beyond the original's size the network's input is the original enlarged bilinearly
     seen.clear()
-    run_stereo(dataclasses.replace(cfg, max_image_size=64, overwrite=True))
+    run_stereo(replace_config(cfg, max_image_size=64, overwrite=True))
     original = cv2.cvtColor(cv2.imread(str(ws / "images" / names[0])), cv2.COLOR_BGR2RGB)
     enlarged = cv2.resize(original, (128, 96), interpolation=cv2.INTER_LINEAR)
     np.testing.assert_allclose(seen[0][0][0], enlarged.transpose(2, 0, 1) / 255.0, atol=1e-6)
     with pytest.raises(ConfigError, match="network_scale"):
-        StereoConfig(workspace_path=ws, network_scale=2.5)
+        stereo_config(workspace_path=ws, network_scale=2.5)
 
 
 def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_size(
@@ -663,20 +673,20 @@ def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_
     ws = _copy(synthetic_ws, tmp_path)
     seen: dict[str, list[np.ndarray]] = {"photometric": [], "geometric": []}
     stage = ["photometric"]
-    real = stereo_module.estimate_depth
+    real = stereo_photometric.estimate_depth
 
     def spy(model, images, intrinsics, poses, depth_range, sparse_depth, device):
         seen[stage[0]].append((poses[0].tobytes(), sparse_depth.copy()))
         return real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
 
-    monkeypatch.setattr(stereo_module, "estimate_depth", spy)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+    monkeypatch.setattr(stereo_photometric, "estimate_depth", spy)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
                        min_confidence=0.0, network_scale=0.5, network_min_size=16, geom_max_depth_error=0.5,
                        geom_max_reproj_error=50.0, geom_min_visibility=0.0, geom_fill=False)
     run_stereo(cfg)
     assert seen["geometric"] == []
     stage[0] = "geometric"
-    res = run_stereo(dataclasses.replace(cfg, geom_reestimate=True))
+    res = run_stereo(replace_config(cfg, geom_reestimate=True))
     names = sorted(res.geometric_processed)
     assert res.processed == [] and len(names) == 4 and len(seen["geometric"]) == 4  # one run per reference
     assert "geometric.reestimate_network" in res.timings
@@ -697,7 +707,7 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
     from colmap_pvs.prior import upsample_prior
 
     ws = _copy(synthetic_ws, tmp_path)
-    real = stereo_module.estimate_depth
+    real = stereo_photometric.estimate_depth
 
     def flat_and_off(model, images, intrinsics, poses, depth_range, sparse_depth, device):
         depth, conf, vis, prior = real(model, images, intrinsics, poses, depth_range, sparse_depth, device)
@@ -707,8 +717,8 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
         off = 2.0 * upsample_prior(prior, (w, h), (w, h))  # the "network": twice the prior's depth
         return off.astype(np.float32), np.ones_like(conf), vis, prior
 
-    monkeypatch.setattr(stereo_module, "estimate_depth", flat_and_off)
-    cfg = StereoConfig(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+    monkeypatch.setattr(stereo_photometric, "estimate_depth", flat_and_off)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
                        min_confidence=0.0, sparse_prior="on", geom_consistency=False)
     res = run_stereo(cfg)
     names = sorted(res.processed)
@@ -721,7 +731,7 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
 
     on = maps()
     # both are photometric settings: turned off, the maps are recomputed from the network alone
-    again = run_stereo(dataclasses.replace(cfg, prior_blend_texture=0.0, prior_agreement_scale=0.0))
+    again = run_stereo(replace_config(cfg, prior_blend_texture=0.0, prior_agreement_scale=0.0))
     assert sorted(again.processed) == names and "prior_blend" not in again.timings
     for name, (depth_off, conf_off) in maps().items():
         depth_on, conf_on = on[name]
@@ -748,21 +758,21 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     conf = np.full((6, 8), 0.5, np.float32)
 
     def write(settings):
-        stereo_module._write_pass(ws, "a.png", stage, depth, normals, conf, settings, {}, False,
+        stereo_outputs.write_pass(ws, "a.png", stage, depth, normals, conf, settings, {}, False,
                                   (1.0, 3.0), {})
 
     old, new = {"v": 1}, {"v": 2}
     write(old)
-    assert stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(old), (8, 6))
+    assert stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
     def dies(path, array):
         raise OSError("disk full")
 
-    monkeypatch.setattr(stereo_module, "write_depth_map", dies)
+    monkeypatch.setattr(stereo_outputs, "write_depth_map", dies)
     with pytest.raises(OSError):
         write(new)
-    assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(new), (8, 6))
-    assert not stereo_module._is_current(ws, "a.png", stage, stereo_module._fingerprint(old), (8, 6))
+    assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(new), (8, 6))
+    assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
 
 def test_wide_sources_reach_select_views_and_stereo(analytic_scene, tmp_path, tiny_checkpoint):
@@ -785,7 +795,7 @@ def test_wide_sources_reach_select_views_and_stereo(analytic_scene, tmp_path, ti
                      "--wide_sources", str(wide)]) == 0
         written = {name: spec.names for name, spec in read_patch_match_cfg(cfg_path).items()}
         assert written == expected[wide]
-        ctx = stereo_module.prepare_stereo(StereoConfig(
+        ctx = stereo_module.prepare_stereo(stereo_config(
             workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, wide_sources=wide))
         try:
             chosen = {name: ref.source_names for name, ref in ctx.selection.references.items()}

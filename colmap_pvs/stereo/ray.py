@@ -5,13 +5,13 @@
 
 1. starts a local Ray (``ray_address=""``) or joins a cluster (``auto`` or ``HOST:PORT``);
 2. starts ``ray_workers`` actors of ``ray_worker_threads`` CPUs each. Every actor checks that it can
-   read the workspace, then calls :func:`colmap_pvs.stereo.prepare_stereo` once (sparse model,
+   read the workspace, then calls :func:`~colmap_pvs.stereo.context.prepare_stereo` once (sparse model,
    view selection and checkpoint loaded once per actor, never per task);
 3. hands out one task per reference and pass (photometric, then geometric when
-   ``config.geom_consistency`` exists and is true, then the dense completion when ``config.geom_fill``
-   is true too). A geometric task of reference R is handed out only after the photometric tasks of R
+   ``geom_consistency`` is true, then the dense completion when ``geom_fill`` is true too). A
+   geometric task of reference R is handed out only after the photometric tasks of R
    and of R's sources finished, a completion task after every geometric task. Each task is
-   :func:`colmap_pvs.stereo.process_reference`, which writes the maps atomically straight into the
+   :func:`~colmap_pvs.stereo.local.process_reference`, which writes the maps atomically straight into the
    shared workspace, exactly as the local backend does: only names and small outcome records travel
    through Ray's object store;
 4. survives the loss of a worker: a task whose actor died (killed, out of memory, node lost, or over
@@ -40,13 +40,16 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import __version__
-from .config import replace_config, save_config
-from .errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
-from .io.cleanup import remove_orphan_temps
-from .io.workspace import Workspace, write_fusion_cfg
-from .stereo import CONFIG_FILENAME, RefOutcome, StereoConfig, StereoResult, remove_filled
-from .views import reference_sources
+from .. import __version__
+from ..config import replace_config, save_config
+from ..errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
+from ..io.cleanup import remove_orphan_temps
+from ..io.workspace import Workspace, write_fusion_cfg
+from ..views import reference_sources
+from .config import CONFIG_FILENAME, StereoConfig
+from .context import RefOutcome, StereoResult, prepare_stereo
+from .local import auxiliary_references, process_reference
+from .outputs import remove_filled
 
 logger = logging.getLogger(__name__)
 
@@ -197,15 +200,14 @@ class StereoWorker:
 
     def setup(self, passes: tuple[str, ...]) -> dict:
         """Check the workspace, :func:`prepare_stereo`, and return who we are plus the reference plan."""
-        from .stereo import auxiliary_references, prepare_stereo
-
         start = time.perf_counter()
         check_workspace_access(self.config)
         self.ctx = ctx = prepare_stereo(self.config)
         sources: dict[str, list[str] | None] = {}
         for name, spec in ctx.references.items():
             try:
-                sources[name] = list(reference_sources(ctx.selection, name, spec, ctx.config.num_views - 1))
+                count = ctx.config.photometric.num_views - 1
+                sources[name] = list(reference_sources(ctx.selection, name, spec, count))
             except (ColmapPVSError, KeyError, ValueError):
                 sources[name] = None  # unknown: a later pass waits for every map of the previous one
         return {
@@ -223,9 +225,7 @@ class StereoWorker:
         }
 
     def process(self, name: str, stage: str):
-        """:func:`colmap_pvs.stereo.process_reference` for one reference and pass."""
-        from .stereo import process_reference
-
+        """:func:`~colmap_pvs.stereo.local.process_reference` for one reference and pass."""
         return process_reference(self.ctx, name, stage)
 
 
@@ -245,7 +245,7 @@ def worker_config(config: StereoConfig) -> StereoConfig:
     per-reference code path and ``ray_worker_threads`` torch threads."""
     changes: dict = {
         "backend": "local",
-        "threads": config.ray_worker_threads,
+        "threads": config.ray.worker_threads,
         "workspace_path": Path(config.workspace_path).expanduser().absolute(),
     }
     if config.checkpoint is not None:
@@ -257,11 +257,11 @@ def _connect(ray, config: StereoConfig) -> bool:
     """Start or join Ray; True when this call started it (and so must shut it down)."""
     if ray.is_initialized():
         return False
-    if config.ray_address:
-        logger.info("stereo: joining the Ray cluster at %s", config.ray_address)
-        ray.init(address=config.ray_address, log_to_driver=True, logging_level=logging.WARNING)
+    if config.ray.address:
+        logger.info("stereo: joining the Ray cluster at %s", config.ray.address)
+        ray.init(address=config.ray.address, log_to_driver=True, logging_level=logging.WARNING)
     else:
-        cpus = (config.ray_workers * config.ray_worker_threads) if config.ray_workers else os.cpu_count() or 1
+        cpus = (config.ray.workers * config.ray.worker_threads) if config.ray.workers else os.cpu_count() or 1
         logger.info("stereo: starting a local Ray with %d CPU(s)", cpus)
         ray.init(address="local", num_cpus=cpus, object_store_memory=LOCAL_OBJECT_STORE_BYTES,
                  include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
@@ -305,17 +305,17 @@ class _Driver:
                              rex.OutOfMemoryError)
         self.task_error = rex.RayTaskError
         cpus = ray.cluster_resources().get("CPU", 0)
-        self.num_workers = config.ray_workers or max(1, int(cpus // config.ray_worker_threads))
-        if self.num_workers * config.ray_worker_threads > cpus:
+        self.num_workers = config.ray.workers or max(1, int(cpus // config.ray.worker_threads))
+        if self.num_workers * config.ray.worker_threads > cpus:
             logger.warning("stereo: %d workers x %d threads need more CPUs than the cluster has (%g); "
-                           "some workers wait", self.num_workers, config.ray_worker_threads, cpus)
-        memory = int(config.ray_worker_memory * 2**30)
+                           "some workers wait", self.num_workers, config.ray.worker_threads, cpus)
+        memory = int(config.ray.worker_memory * 2**30)
         self._check_fits(memory, joined)
         self.actor_cls = ray.remote(StereoWorker).options(
-            num_cpus=config.ray_worker_threads, memory=memory or None, max_restarts=0, max_task_retries=0,
+            num_cpus=config.ray.worker_threads, memory=memory or None, max_restarts=0, max_task_retries=0,
             runtime_env={"env_vars": {"OMP_WAIT_POLICY": "PASSIVE"}},
         )
-        self.deaths_left = self.num_workers * (config.ray_max_retries + 1)
+        self.deaths_left = self.num_workers * (config.ray.max_retries + 1)
         self.actors: list = []
         self.starting: dict = {}  # setup ref -> actor
         self.idle: deque = deque()
@@ -327,12 +327,12 @@ class _Driver:
     def _check_fits(self, memory: int, joined: bool) -> None:
         """Fail (or, joining a cluster an autoscaler may grow, warn) if no node can hold a worker."""
         nodes = [n.get("Resources", {}) for n in self.ray.nodes() if n.get("Alive")]
-        need = {"CPU": self.config.ray_worker_threads, "memory": memory}
+        need = {"CPU": self.config.ray.worker_threads, "memory": memory}
         if any(all(res.get(k, 0) >= v for k, v in need.items()) for res in nodes):
             return
         have = ", ".join(f"{r.get('CPU', 0):g} CPUs / {r.get('memory', 0) / 2**30:.1f} GiB" for r in nodes)
-        msg = (f"no Ray node can hold one worker of ray_worker_threads={self.config.ray_worker_threads} CPUs "
-               f"and ray_worker_memory={self.config.ray_worker_memory:g} GiB (nodes: {have or 'none'})")
+        msg = (f"no Ray node can hold one worker of ray_worker_threads={self.config.ray.worker_threads} CPUs "
+               f"and ray_worker_memory={self.config.ray.worker_memory:g} GiB (nodes: {have or 'none'})")
         if not joined:
             raise DistributedError(msg)
         logger.warning("stereo: %s; waiting for the cluster to grow", msg)
@@ -437,11 +437,11 @@ class _Driver:
                     attempts[task] = attempts.get(task, 0) + 1
                     logger.warning("stereo: Ray worker %s died on %s/%s (%s); retry %d of %d elsewhere",
                                    self._worker_name(actor), *task, why, attempts[task],
-                                   self.config.ray_max_retries)
-                    if attempts[task] > self.config.ray_max_retries:
+                                   self.config.ray.max_retries)
+                    if attempts[task] > self.config.ray.max_retries:
                         raise DistributedError(
                             f"reference {task[0]!r} ({task[1]} pass): its Ray worker died {attempts[task]} "
-                            f"time(s) (last: {why}; ray_max_retries={self.config.ray_max_retries})"
+                            f"time(s) (last: {why}; ray_max_retries={self.config.ray.max_retries})"
                         ) from None
                     graph.requeue(task)
                     self._lost(actor, f"{task[0]}/{task[1]}", exc)
@@ -451,12 +451,12 @@ class _Driver:
                 graph.finish(task)
                 self.idle.append(actor)
                 bar.update(1)
-            if self.config.ray_task_timeout > 0:
+            if self.config.ray.task_timeout > 0:
                 now = time.monotonic()
                 for ref, (actor, task, start) in self.running.items():
-                    if ref not in self.timed_out and now - start > self.config.ray_task_timeout:
+                    if ref not in self.timed_out and now - start > self.config.ray.task_timeout:
                         logger.warning("stereo: %s/%s ran over ray_task_timeout=%g s; killing its worker",
-                                       *task, self.config.ray_task_timeout)
+                                       *task, self.config.ray.task_timeout)
                         self.timed_out.add(ref)
                         self.ray.kill(actor, no_restart=True)
         return attempts
@@ -516,7 +516,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     started = _connect(ray, config)
     driver = None
     try:
-        driver = _Driver(ray, config, passes, joined=bool(config.ray_address))
+        driver = _Driver(ray, config, passes, joined=bool(config.ray.address))
         # Test-time adaptation (adapt_steps) runs once, in the first worker; the others start after it
         # and reuse its adapted checkpoint (stereo/adapt/adapted.pt) instead of each adapting again.
         first = 1 if getattr(config, "adapt_steps", 0) > 0 else driver.num_workers

@@ -1,0 +1,356 @@
+"""The ``stereo`` step's settings: one frozen config per pass, nested in :class:`StereoConfig`.
+
+Each nested config is one argparse group of ``colmap-pvs stereo --help``; its fields are flags named
+``PREFIX + field`` (``StereoConfig.geometric.min_consistent`` is ``--geom_min_consistent``). A pass's
+provenance is every field of its own config under its flag name (:func:`pass_settings`), so a new
+setting is one field and nothing else: it is a flag, it is checked, it is in the provenance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar, Literal
+
+from ..config import check_int_fields, check_range, config_flags
+from ..errors import ConfigError
+from ..views import WIDE_SOURCES_HELP
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_default.pt"
+#: The resolved config of the last run, in ``stereo/``.
+CONFIG_FILENAME = "colmap_pvs_stereo.json"
+#: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
+FORMAT_VERSIONS = {"photometric": 3, "geometric": 8, "filled": 3}
+Stage = Literal["photometric", "geometric", "filled"]
+#: Largest ``network_scale``: the network on twice the map's size (about 4x its time and memory).
+NETWORK_SCALE_MAX = 2.0
+#: :class:`PhotometricConfig` fields that override the checkpoint's
+#: :class:`~colmap_pvs.model.PVSNetConfig` field of the same name ("on" / "off"; "checkpoint" keeps
+#: it). Each must be one of :data:`colmap_pvs.model.PARAMETER_FREE_FIELDS` (pinned by a test):
+#: flipping it keeps the weights valid.
+MODEL_SWITCHES = ("sparse_guidance", "sparse_prior")
+
+_OFF = {"provenance": False}  # a pass's on/off switch: not one of the settings its maps depend on
+
+
+@dataclass(frozen=True)
+class PhotometricConfig:
+    """The photometric pass: the network on each reference (flags without prefix)."""
+
+    num_views: int = field(default=5, metadata={"help": "views per reference: reference + N-1 sources"})
+    max_image_size: int = field(
+        default=640, metadata={"help": "longest image side for inference; <= 0 keeps full size"}
+    )
+    network_scale: float = field(
+        default=0.8,
+        metadata={
+            "help": "run the network at this multiple of the map size (0.25-2) and bring its depth "
+            "back to the map size: image-guided upsampling below 1, nearest sampling above 1 (the "
+            "image is read at that size from its original, so up to its full resolution with real "
+            "detail: thin structures, at about scale^2 the time and memory); maps keep max_image_size"
+        },
+    )
+    network_min_size: int = field(
+        default=400,
+        metadata={
+            "help": "network_scale never takes the network's longest side below this (px), nor below "
+            "the map's: small images keep their detail"
+        },
+    )
+    min_confidence: float = field(
+        default=0.0,
+        metadata={
+            "help": "pixels with confidence (the network's probability mass times its agreement with "
+            "the sparse prior, see prior_agreement_scale) below this are set invalid; 0 keeps the "
+            "maps dense and leaves the filtering to the geometric pass"
+        },
+    )
+    sparse_guidance: Literal["checkpoint", "on", "off"] = field(
+        default="checkpoint",
+        metadata={"help": "modulate the cost volume around projected sparse points (Guided Stereo)"},
+    )
+    sparse_prior: Literal["checkpoint", "on", "off"] = field(
+        default="checkpoint",
+        metadata={
+            "help": "centre the coarse depth hypotheses on the interpolated sparse points "
+            "(off: the image's global depth range everywhere)"
+        },
+    )
+    prior_blend_texture: float = field(
+        default=0.01,
+        metadata={
+            "help": "where the image's grey-level standard deviation (0-1 scale, over "
+            "prior_blend_window pixels) is below this, the depth moves towards the sparse prior in log "
+            "depth, all the way where the image is flat (0 = off)"
+        },
+    )
+    prior_blend_window: int = field(
+        default=7, metadata={"help": "window (map pixels, odd) of prior_blend_texture"}
+    )
+    prior_agreement_scale: float = field(
+        default=0.05,
+        metadata={
+            "help": "the confidence is multiplied by exp(-|log(d / prior)| / this), the network's "
+            "agreement with the sparse prior (0 = the network's probability mass alone)"
+        },
+    )
+
+    def __post_init__(self) -> None:
+        check_int_fields(self)
+        check_range("num_views", self.num_views, low=2)
+        check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
+        check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
+        check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
+        if self.prior_blend_window < 1 or self.prior_blend_window % 2 == 0:
+            raise ConfigError(f"prior_blend_window must be an odd number >= 1, got {self.prior_blend_window}")
+        check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
+        check_range("network_min_size", self.network_min_size, low=16)
+        if 0 < self.max_image_size < 16:
+            raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
+
+
+@dataclass(frozen=True)
+class GeometricConfig:
+    """The geometric pass: forward-backward consistency against the sources (flags ``--geom_*``)."""
+
+    enabled: bool = field(
+        default=True,
+        metadata={"flag": "geom_consistency", **_OFF,
+                  "help": "run the geometric pass (writes *.geometric.bin); off: photometric maps only "
+                  "(COLMAP's PatchMatchStereo.geom_consistency)"},
+    )
+    min_consistent: int = field(
+        default=2, metadata={"help": "a pixel must agree with at least this many sources"}
+    )
+    max_reproj_error: float = field(
+        default=2.0, metadata={"help": "max forward-backward reprojection error (px)"}
+    )
+    max_depth_error: float = field(default=0.03, metadata={"help": "max relative depth error |z'-d|/d"})
+    max_normal_error: float = field(
+        default=180.0, metadata={"help": "max normal angle (degrees; >= 180 disables)"}
+    )
+    min_visibility: float = field(
+        default=0.2, metadata={"help": "consult a source only where its learned visibility >= this"},
+    )
+    min_triangulation_angle: float = field(
+        default=3.0,
+        metadata={
+            "help": "a source confirms a pixel only where the rays from its centre and the "
+            "reference's meet at the pixel's point at this angle (degrees) or more (COLMAP's "
+            "filter_min_triangulation_angle; 0: any)"
+        },
+    )
+    num_sources: int = field(
+        default=10,
+        metadata={
+            "help": "check against up to this many sources with photometric maps: the network's "
+            "sources, then the next best by view score (0: the network's sources only; a network "
+            "source that is not a candidate view of the reference takes no slot)"
+        },
+    )
+    average_depth: bool = field(
+        default=True, metadata={"help": "average the depth with the agreeing sources' reprojected depths"},
+    )
+    min_confidence: float = field(
+        default=0.0, metadata={"help": "pixels with geometric confidence below this are invalid"},
+    )
+    reestimate: bool = field(
+        default=False,
+        metadata={
+            "help": "run the network again on each reference with the depth its sources' photometric "
+            "maps agree on as dense hints, then check that re-estimate (more pixels kept, one more "
+            "network run per image)"
+        },
+    )
+    seed_min_consistent: int = field(
+        default=3,
+        metadata={
+            "help": "a pixel seeds the dense completion (stereo/seed_maps/NAME.bin) where at least "
+            "this many sources agree with it within geom_seed_depth_error (at any angle) and enough of "
+            "its neighbours do for a normal; the completion keeps only the seeds as they are"
+        },
+    )
+    seed_depth_error: float = field(
+        default=0.025,
+        metadata={"help": "max relative depth error of the sources that make a seed "
+                  "(see geom_seed_min_consistent)"},
+    )
+    splat_min_sources: int = field(
+        default=3,
+        metadata={
+            "seeds": False,  # changes the geometric maps, not the seeds
+            "help": "a pixel the check drops is kept with its sources' confirmed depth where at least "
+            "this many of the checked sources' seed maps, projected into it, agree within 3 % "
+            "(their median; 0: off)",
+        },
+    )
+
+    def __post_init__(self) -> None:
+        check_int_fields(self, "geom_")
+        check_range("geom_seed_min_consistent", self.seed_min_consistent, low=1)
+        check_range("geom_splat_min_sources", self.splat_min_sources, low=0)
+        check_range("geom_min_visibility", self.min_visibility, low=0.0, high=1.0)
+        check_range("geom_min_triangulation_angle", self.min_triangulation_angle, low=0.0, high=90.0)
+        check_range("geom_num_sources", self.num_sources, low=0)
+        if self.min_consistent < 1:
+            raise ConfigError(f"geom_min_consistent must be >= 1, got {self.min_consistent}")
+        for name in ("max_reproj_error", "max_depth_error", "max_normal_error", "seed_depth_error"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"geom_{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class CompletionConfig:
+    """The dense completion of each geometric map (flags ``--geom_fill*``)."""
+
+    enabled: bool = field(
+        default=True,
+        metadata={
+            "flag": "geom_fill", **_OFF,
+            "help": "third pass, after the geometric one: a dense completion of each geometric map, "
+            "NAME.filled.bin in stereo/depth_maps and stereo/confidence_maps: dropped pixels from the "
+            "sources' kept pixels, then a local plane fit (COLMAP's fusion never reads it)",
+        },
+    )
+    min_sources: int = field(
+        default=2, metadata={"help": "sources whose kept depths must agree to give a dropped pixel"},
+    )
+    segments: bool = field(
+        default=True,
+        metadata={
+            "help": "a dropped pixel takes the robust plane of the known pixels of its image segment "
+            "(the region between image edges) where that plane fits them"
+        },
+    )
+    segment_min_pixels: int = field(
+        default=30, metadata={"help": "known pixels a segment needs to give its plane"}
+    )
+    segment_inliers: float = field(
+        default=0.6,
+        metadata={"help": "least fraction of a segment's known pixels within 3 % of its plane for the "
+                  "segment to give it"},
+    )
+
+    def __post_init__(self) -> None:
+        check_int_fields(self, "geom_fill_")
+        check_range("geom_fill_min_sources", self.min_sources, low=1)
+        check_range("geom_fill_segment_min_pixels", self.segment_min_pixels, low=3)
+        check_range("geom_fill_segment_inliers", self.segment_inliers, low=0.0, high=1.0)
+
+
+@dataclass(frozen=True)
+class AdaptationConfig:
+    """Test-time adaptation of the network on the workspace's own images (flags ``--adapt_*``)."""
+
+    steps: int = field(
+        default=0,
+        metadata={
+            "help": "fine-tune a copy of the network for this many steps on the workspace's own "
+            "images (self-supervised) before inference; 0 = off"
+        },
+    )
+    max_seconds: float = field(default=0.0, metadata={"help": "time limit in seconds (0 = none)"})
+    lr: float = field(default=1e-4, metadata={"help": "learning rate"})
+    seed: int = field(default=0, metadata={"help": "seed"})
+    pseudo_labels: Literal["none", "geometric", "filled"] = field(
+        default="none",
+        metadata={
+            "help": "also fit the workspace's own maps of this kind as dense pseudo-labels "
+            "(self-training): stereo first runs with the base checkpoint, adapts on its 'geometric' or "
+            "'filled' maps, then runs again with the adapted weights; 'none': off"
+        },
+    )
+
+    def __post_init__(self) -> None:
+        check_int_fields(self, "adapt_")
+        check_range("adapt_steps", self.steps, low=0)
+        check_range("adapt_max_seconds", self.max_seconds, low=0.0)
+        if self.pseudo_labels != "none" and self.steps == 0:
+            raise ConfigError(f"adapt_pseudo_labels={self.pseudo_labels!r} needs adapt_steps > 0 (got 0)")
+
+
+@dataclass(frozen=True)
+class RayConfig:
+    """The Ray backend (``--backend ray``; :mod:`colmap_pvs.stereo.ray`, flags ``--ray_*``)."""
+
+    address: str = field(
+        default="", metadata={"help": "empty starts a local Ray; 'auto' or HOST:PORT joins a cluster"}
+    )
+    workers: int = field(default=0, metadata={"help": "worker actors; 0: fill the CPUs"})
+    worker_threads: int = field(default=1, metadata={"help": "torch threads (and CPUs) per worker"})
+    worker_memory: float = field(
+        default=0.0, metadata={"help": "GiB of memory Ray reserves per worker when placing it; 0: none"}
+    )
+    max_retries: int = field(
+        default=3, metadata={"help": "times a reference is retried after its worker died"}
+    )
+    task_timeout: float = field(
+        default=0.0,
+        metadata={"help": "seconds after which a reference's worker is killed and the reference retried; "
+                  "0: no limit"},
+    )
+
+    def __post_init__(self) -> None:
+        check_int_fields(self, "ray_")
+        for name, low in (("workers", 0), ("worker_threads", 1), ("worker_memory", 0.0),
+                          ("max_retries", 0), ("task_timeout", 0.0)):
+            check_range(f"ray_{name}", getattr(self, name), low=low)
+
+
+def _section(cls: type, prefix: str, title: str):
+    return field(default_factory=cls, metadata={"flag_prefix": prefix, "title": title})
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Settings of the ``stereo`` step (the single source of its defaults and CLI flags)."""
+
+    workspace_path: Path = field(metadata={"help": "COLMAP dense workspace (images/, sparse/, stereo/)"})
+    checkpoint: Path | None = field(
+        default=None, metadata={"help": "model checkpoint (.pt); default: the shipped checkpoint"}
+    )
+    device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device"})
+    threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
+    overwrite: bool = field(default=False, metadata={"help": "recompute images whose maps already exist"})
+    previews: bool = field(
+        default=False, metadata={"help": "write PNG previews of depth, normals, confidence, visibility"}
+    )
+    min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
+    wide_sources: int = field(default=0, metadata={"help": WIDE_SOURCES_HELP})
+    backend: Literal["local", "ray"] = field(
+        default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
+    )
+    photometric: PhotometricConfig = _section(PhotometricConfig, "", "photometric pass (the network)")
+    geometric: GeometricConfig = _section(GeometricConfig, "geom_", "geometric pass")
+    completion: CompletionConfig = _section(CompletionConfig, "geom_fill_", "dense completion")
+    adapt: AdaptationConfig = _section(AdaptationConfig, "adapt_", "test-time adaptation")
+    ray: RayConfig = _section(RayConfig, "ray_", "Ray backend (--backend ray)")
+
+    REMOVED_OPTIONS: ClassVar[dict[str, object]] = {}
+
+    def __post_init__(self) -> None:  # bad values are refused where they enter
+        check_int_fields(self)
+        check_range("threads", self.threads, low=0)
+        check_range("min_sources", self.min_sources, low=1)
+        kind = self.adapt.pseudo_labels
+        needs_fill = kind == "filled" and not self.completion.enabled
+        if kind != "none" and (not self.geometric.enabled or needs_fill):
+            raise ConfigError(
+                f"adapt_pseudo_labels={kind!r} needs the pass that writes those maps: "
+                f"geom_consistency={self.geometric.enabled}, geom_fill={self.completion.enabled}"
+            )
+
+
+def pass_settings(config: StereoConfig, section: str, *, seeds: bool = False) -> dict:
+    """The settings of ``config.<section>`` that the pass's maps depend on, by flag name, in field
+    order (every field but the pass's on/off switch; with ``seeds``, only those the geometric pass's
+    seed maps depend on)."""
+    out = {}
+    for flag, spec in config_flags(StereoConfig).items():
+        meta = spec.field.metadata
+        if spec.path[0] != section or meta.get("provenance", True) is False:
+            continue
+        if seeds and meta.get("seeds", True) is False:
+            continue
+        out[flag] = getattr(getattr(config, section), spec.path[1])
+    return out

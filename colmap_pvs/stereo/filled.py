@@ -1,0 +1,130 @@
+"""The dense completion (``geom_fill``), once every geometric map exists.
+
+From the seeds of the reference and of its sources (:mod:`colmap_pvs.completion`): the seeds as they
+are, other pixels from the sources' seeds projected in, then segment planes and a local plane fit.
+Writes ``NAME.filled.bin`` depth and confidence maps, which COLMAP's fusion never reads.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..completion import complete_depth, completed_confidence, segment_planes, splat_depths
+from ..errors import MapFormatError
+from ..io.maps import read_depth_map
+from .context import RefOutcome, StereoContext
+from .geometric import load_maps
+from .outputs import (
+    fingerprint,
+    geometric_files_exist,
+    is_current,
+    photometric_settings,
+    read_confidence,
+    read_provenance,
+    remove_filled,
+    seed_map_path,
+    stage_settings,
+    write_filled,
+)
+
+
+def current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
+    """``name``'s geometric provenance if its geometric maps exist and match this run: it is one of
+    the run's references, its geometric settings are the run's, and they were made from its current
+    photometric maps (whose fingerprint matches this run's settings and sources). ``None`` otherwise:
+    maps left by another run, or by a pass this run skipped."""
+    ws = ctx.workspace
+    if name not in ctx.references or name not in ctx.selection.references:
+        return None
+    prov = read_provenance(ws, name, "geometric")
+    photo = read_provenance(ws, name, "photometric")
+    if prov is None or photo is None or not geometric_files_exist(ws, name):
+        return None
+    settings = prov.get("settings", {})
+    wanted = stage_settings(ctx, "geometric", "geometric")
+    if any(settings.get(k) != v for k, v in wanted.items()) or settings.get("reference") != photo.get(
+            "fingerprint"):
+        return None
+    sources, _ = ctx.sources_of(name)
+    if sources is None or photo.get("fingerprint") != fingerprint(photometric_settings(ctx, name, sources)):
+        return None
+    return prov
+
+
+def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
+    """The dense completion of ``name``'s geometric map (:mod:`colmap_pvs.completion`).
+
+    Reads the geometric maps of ``name`` and of its best views by score whose geometric maps are
+    current (:func:`current_geometric_provenance`, up to ``geom_num_sources``), so it runs once every
+    geometric map exists.
+    """
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    prov = read_provenance(ws, name, "geometric")
+    if prov is None or not geometric_files_exist(ws, name):
+        remove_filled(ws, name)
+        return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
+    entry = ctx.selection.references.get(name)
+    source_prov: dict[str, dict] = {}  # the best views by score whose geometric maps are current
+    for s in entry.ranked_names if entry is not None else ():
+        if len(source_prov) >= max(1, cfg.geometric.num_sources):
+            break
+        found = current_geometric_provenance(ctx, s) if s != name else None
+        if found is not None:
+            source_prov[s] = found
+    settings = stage_settings(ctx, "filled", "completion")
+    settings.update(reference=prov["fingerprint"],
+                    sources={s: p["fingerprint"] for s, p in source_prov.items()})
+    size = tuple(prov.get("image_size", ctx.map_size(name)))
+    if not cfg.overwrite and is_current(ws, name, "filled", fingerprint(settings), size):
+        return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
+    t0 = time.perf_counter()
+    # The seeds of the reference and of its sources are what is known.
+    ref = load_maps(ctx, name, "geometric", normals=False, depth_path=seed_map_path(ws, name))
+    srcs = [load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
+            for s in source_prov]
+    h, w = ref.depth.shape
+    geometric_kept = read_depth_map(ws.depth_map_path(name, "geometric")) > 0
+    if geometric_kept.shape != (h, w):
+        raise MapFormatError(
+            f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
+        )
+    photo = read_depth_map(ws.depth_map_path(name, "photometric"))
+    if photo.shape != (h, w):
+        raise MapFormatError(
+            f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
+        )
+    geo_conf = read_confidence(ws, name, "geometric", (h, w))
+    photo_conf = read_confidence(ws, name, "photometric", (h, w))
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    kept = ref.depth > 0
+    splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.completion.min_sources)
+    splatted = ~kept & (splat > 0)
+    known = np.where(kept, ref.depth, splat).astype(np.float32)
+    timings["splat"] = time.perf_counter() - t0
+    segmented, inliers = np.zeros_like(kept), None
+    if cfg.completion.segments:
+        t0 = time.perf_counter()
+        image = ctx.images.get(name, cfg.photometric.max_image_size, (w, h))
+        plane, inliers = segment_planes(known, image, ~kept, min_pixels=cfg.completion.segment_min_pixels,
+                                        min_inliers=cfg.completion.segment_inliers)
+        segmented = ~kept & (plane > 0)
+        timings["segments"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    depth = complete_depth(known, photo)
+    if cfg.completion.segments:
+        depth = np.where(segmented, plane, depth).astype(np.float32)
+    conf = completed_confidence(kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)),
+                                segmented, inliers)
+    timings["fit"] = time.perf_counter() - t0
+    extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
+             "geometric_fraction": float(geometric_kept.mean()),
+             "splatted_fraction": float((splatted & ~segmented).mean()),
+             "segmented_fraction": float(segmented.mean())}
+    dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
+    ctx.submit_write(write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
+    return RefOutcome(name, "filled", "computed", seconds=time.perf_counter() - start, timings=timings)

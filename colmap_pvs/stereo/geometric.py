@@ -1,0 +1,385 @@
+"""The geometric pass: each reference's photometric depth checked against its sources' maps.
+
+Forward-backward consistency (:mod:`colmap_pvs.consistency`), consulting only the sources the network
+found visible; pixels that fewer than ``geom_min_consistent`` sources confirm (agree with, seen at a
+triangulation angle of at least ``geom_min_triangulation_angle``) are dropped, the rest averaged with
+the confirming sources' depths. A dropped pixel is kept where ``geom_splat_min_sources`` of the
+sources' seeds, projected into it, agree. Writes ``NAME.geometric.bin`` depth, normal and confidence
+maps and ``stereo/seed_maps/NAME.bin``, the pixels that ``geom_seed_min_consistent`` sources agree
+with within ``geom_seed_depth_error`` (the dense completion's seeds). With ``geom_reestimate`` the
+depth that passes the check first becomes dense hints of a second network run on the reference, and
+that re-estimate is what is checked (COLMAP's geometric PatchMatch re-estimates each reference with
+its sources' photometric maps, too).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..completion import plane_deviation, splat_depths
+from ..consistency import SourceMaps, check_consistency
+from ..errors import MapFormatError, ShapeError
+from ..geometry import to_homogeneous
+from ..io.maps import read_array, read_depth_map, read_normal_map
+from ..normals import fit_normals
+from ..upsampling import resize_bilinear
+from .config import Stage, StereoConfig, pass_settings
+from .context import RefOutcome, StereoContext
+from .outputs import (
+    fingerprint,
+    geometric_files_exist,
+    is_current,
+    read_provenance,
+    seed_map_path,
+    seed_provenance_path,
+    stage_settings,
+    write_pass,
+    write_seeds,
+)
+from .photometric import network_maps
+
+#: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
+GEOM_DEVIATION_SCALE = 0.02
+#: Parallax (pixels per ``consistency.PARALLAX_STEP`` of depth) from which an agreeing source counts fully
+#: in the geometric confidence; one with less counts in proportion.
+GEOM_FULL_PARALLAX = 1.0
+#: Confidence of a geometric pixel that the sources' seeds give (``geom_splat_min_sources``), times the
+#: share of the checked sources that agree on it: below most checked pixels, which are more often right.
+SPLAT_CONFIDENCE = 0.1
+#: Seed maps computed on demand (for other references' geometric passes) kept in memory per run.
+SEED_CACHE_SIZE = 32
+
+
+def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
+                         deviation: np.ndarray | None = None,
+                         parallax: np.ndarray | None = None) -> np.ndarray:
+    """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
+
+    ``c = exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * min(1, p_s / GEOM_FULL_PARALLAX) * agree_s / S``:
+    the fraction of the ``S`` sources that confirm the pixel, each weighted by the network's learned
+    visibility ``v_s`` of that source at the pixel (``agree`` ``[S, H, W]``, ``visibility``
+    ``[S, H, W]`` or ``None`` for all ones) and by its parallax ``p_s`` (``[S, H, W]`` pixels,
+    :attr:`~colmap_pvs.consistency.ConsistencyResult.parallax`; ``None``: full), times a factor for
+    how far the pixel stands off the local plane of the kept pixels around it (``deviation`` ``e``
+    ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0). A source with little
+    parallax agrees with almost any depth, so its agreement says less. Chosen by measurement on
+    hololens-dev (``benchmarks/RESULTS.md``): the weighted fraction ranks errors better than the
+    network's probability mass (which does not rank the consistent pixels at all), the agreement
+    count alone, or the reprojection and depth errors; the deviation factor and the parallax weight
+    rank them better still.
+    """
+    S = max(agree.shape[0], 1)
+    weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
+    if parallax is not None:
+        if parallax.shape != agree.shape:
+            raise ShapeError(f"parallax must be {agree.shape}, got {parallax.shape}")
+        weighted = weighted * np.clip(np.nan_to_num(parallax) / GEOM_FULL_PARALLAX, 0.0, 1.0)
+    conf = weighted.sum(0) / S
+    if deviation is not None:
+        if deviation.shape != conf.shape:
+            raise ShapeError(f"deviation must be {conf.shape}, got {deviation.shape}")
+        conf = conf * np.exp(-np.nan_to_num(deviation, nan=np.inf) / GEOM_DEVIATION_SCALE)
+    return np.clip(conf, 0.0, 1.0).astype(np.float32)
+
+
+def load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
+               normals: bool = True, depth_path: Path | None = None) -> SourceMaps:
+    """``name``'s ``kind`` depth map (or the depth map at ``depth_path``; and its ``kind`` normal map,
+    with ``normals``), intrinsics and pose."""
+    ws = ctx.workspace
+    depth = read_depth_map(ws.depth_map_path(name, kind) if depth_path is None else depth_path)
+    normal_map = read_normal_map(ws.normal_map_path(name, kind)) if normals else None
+    if normal_map is not None and normal_map.shape[:2] != depth.shape:
+        raise MapFormatError(
+            f"normal map of {name!r} is {normal_map.shape[:2]} but its depth map is {depth.shape}"
+        )
+    h, w = depth.shape
+    T = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
+    return SourceMaps(depth, normal_map, ctx.map_K(name, (w, h)), T)
+
+
+def _check_visibility(coarse: np.ndarray, network_sources: list[str], sources: list[str],
+                      size: tuple[int, int]) -> np.ndarray | None:
+    """``[S, H, W]`` learned visibility of each of ``sources`` for the check, from the network's
+    ``coarse`` ``[len(network_sources), h, w]`` maps upsampled to ``size`` ``(H, W)``; a source the
+    network did not see counts as visible. ``None`` when ``coarse`` does not match the network's sources."""
+    if coarse.shape[0] != len(network_sources):
+        return None
+    h, w = size
+    up = resize_bilinear(np.ascontiguousarray(coarse, dtype=np.float32), h, w)
+    ones = np.ones((h, w), np.float32)
+    return np.stack([up[network_sources.index(s)] if s in network_sources else ones for s in sources])
+
+
+@dataclass
+class CheckSetup:
+    """What a reference's geometric check reads: its photometric provenance ``prov``, the ``sources``
+    checked (with photometric maps), the network sources without maps (``missing``), its
+    view-selection ``entry`` and the ``settings`` (fingerprinted) that fix the check and the seeds."""
+
+    prov: dict
+    sources: list[str]
+    missing: list[str]
+    entry: object
+    settings: dict
+
+
+def _check_setup(ctx: StereoContext, name: str) -> CheckSetup | str:
+    """:class:`CheckSetup` of ``name``, or why its geometric pass cannot run."""
+    cfg, ws = ctx.config, ctx.workspace
+    prov = read_provenance(ws, name, "photometric")
+    if prov is None or not ws.depth_map_path(name, "photometric").is_file():
+        return "its photometric maps do not exist"
+    source_prov: dict[str, dict] = {}  # each source's provenance, read once
+
+    def has_maps(s: str) -> bool:
+        if s not in source_prov and ws.depth_map_path(s, "photometric").is_file():
+            found = read_provenance(ws, s, "photometric")
+            if found is not None:
+                source_prov[s] = found
+        return s in source_prov
+
+    sources = [s for s in prov.get("sources", []) if has_maps(s)]
+    missing = [s for s in prov.get("sources", []) if s not in sources]
+    entry = ctx.selection.references.get(name)
+    if cfg.geometric.num_sources > 0 and entry is not None:  # the next best views with maps
+        # A network source that is not a candidate view of the reference (score 0 or fewer than
+        # min_shared_points shared sparse points: an unrelated frame in patch-match.cfg) is still
+        # checked but takes none of the slots.
+        candidates = set(entry.ranked_names)
+        counted = sum(s in candidates for s in sources)
+        for s in entry.ranked_names:
+            if counted >= cfg.geometric.num_sources:
+                break
+            if s not in sources and s != name and has_maps(s):
+                sources.append(s)
+                counted += 1
+    settings = stage_settings(ctx, "geometric", "geometric", seeds=True)
+    settings.update(
+        reference=prov["fingerprint"],
+        sources={s: source_prov[s]["fingerprint"] for s in sources},
+    )
+    if len(sources) < min(cfg.geometric.min_consistent, len(prov.get("sources", []))) or not sources:
+        return f"{len(sources)} of its sources have photometric maps (missing: {missing})"
+    return CheckSetup(prov, sources, missing, entry, settings)
+
+
+def _check_kwargs(ctx: StereoContext) -> dict:
+    cfg = ctx.config.geometric
+    return {"max_reproj_error": cfg.max_reproj_error, "max_depth_error": cfg.max_depth_error,
+            "max_normal_error": cfg.max_normal_error, "min_visibility": cfg.min_visibility,
+            "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
+
+
+def _load_check(ctx: StereoContext, name: str, setup: CheckSetup):
+    """``(ref, srcs, vis)``: the photometric maps of ``name`` and of its checked sources, and the
+    learned visibility of those sources (``None`` without a visibility map)."""
+    ws = ctx.workspace
+    ref = load_maps(ctx, name)
+    srcs = [load_maps(ctx, s) for s in setup.sources]
+    h, w = ref.depth.shape
+    vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
+    vis = None
+    if vis_path.is_file():
+        coarse = read_array(vis_path)
+        coarse = coarse[..., None] if coarse.ndim == 2 else coarse
+        vis = _check_visibility(coarse.transpose(2, 0, 1), list(setup.prov.get("sources", [])), setup.sources,
+                                (h, w))
+    return ref, srcs, vis
+
+
+def _seeds(cfg: StereoConfig, ref: SourceMaps, res) -> np.ndarray:
+    """``[H, W]`` the completion's seeds of ``ref``'s photometric depth from its check ``res``:
+    pixels that ``geom_seed_min_consistent`` sources confirm within ``geom_seed_depth_error`` (at any
+    angle: the completion is better off with the narrow-baseline agreement of a video than without
+    it), not isolated (the map of the seeds alone still gives them a normal); 0 elsewhere."""
+    strict = (res.agree & (res.depth_error <= cfg.geometric.seed_depth_error)).sum(0)
+    seed_depth = res.mean_depth(ref.depth) if cfg.geometric.average_depth else ref.depth
+    seeds = np.where((ref.depth > 0) & (strict >= cfg.geometric.seed_min_consistent), seed_depth, 0.0)
+    return np.where(np.any(fit_normals(seeds, ref.K) != 0, axis=-1), seeds, 0.0).astype(np.float32)
+
+
+@dataclass
+class Checked:
+    """A reference's check of its photometric maps (no re-estimate): its seeds ``[H, W]`` and, when
+    another reference's geometric pass made it in this run, its checked depth and confidence
+    ``[H, W]`` (0 where dropped) before the sources' seeds are added, for its own pass to reuse
+    (``None`` for seeds read from disk or after its own pass)."""
+
+    seeds: np.ndarray
+    depth: np.ndarray | None = None
+    conf: np.ndarray | None = None
+
+
+def _kept(cfg: StereoConfig, ref: SourceMaps, res, vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` that the check ``res`` keeps: confirmed by
+    ``geom_min_consistent`` sources from ``geom_min_triangulation_angle`` or more, averaged over them
+    (``geom_average_depth``), with their geometric confidence of at least ``geom_min_confidence``."""
+    confirm = res.confirming(cfg.geometric.min_triangulation_angle)  # agreeing, from far enough apart
+    keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geometric.min_consistent)
+    depth = res.mean_depth(ref.depth, confirm) if cfg.geometric.average_depth else ref.depth.copy()
+    depth = np.where(keep, depth, 0.0).astype(np.float32)
+    conf = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
+    keep &= conf >= cfg.geometric.min_confidence
+    depth[~keep] = 0.0
+    return depth, np.where(keep, conf, 0.0).astype(np.float32)
+
+
+def _reestimates(ctx: StereoContext, setup: CheckSetup) -> bool:
+    """Whether the reference of ``setup`` is re-estimated in its geometric pass (``geom_reestimate``,
+    with network sources and a view-selection entry): its kept pixels then come from the re-estimate,
+    not from the check of its photometric maps."""
+    return bool(ctx.config.geometric.reestimate and setup.prov.get("sources") and setup.entry is not None)
+
+
+def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: bool = True) -> Checked:
+    """:class:`Checked` of ``name`` from its photometric maps and its checked sources' (the seeds
+    only, without ``kept``)."""
+    ref, srcs, vis = _load_check(ctx, name, setup)
+    check = _check_kwargs(ctx)
+    res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+    depth, conf = _kept(ctx.config, ref, res, vis) if kept else (None, None)
+    return Checked(_seeds(ctx.config, ref, res), depth, conf)
+
+
+
+
+def _remember_seeds(ctx: StereoContext, name: str, fingerprint: str, checked: Checked) -> None:
+    ctx.seed_cache[name] = (fingerprint, checked)
+    ctx.seed_cache.move_to_end(name)
+    while len(ctx.seed_cache) > SEED_CACHE_SIZE:
+        ctx.seed_cache.popitem(last=False)
+
+
+def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarray:
+    """The seeds of ``name`` (its check's ``setup``) for another reference's geometric pass: from this
+    run's memory or a current seed map on disk, else computed from the photometric maps (the same
+    check as ``name``'s own geometric pass, so the same seeds whoever makes them) and written."""
+    ws = ctx.workspace
+    wanted = fingerprint(setup.settings)
+    cached = ctx.seed_cache.get(name)
+    if cached is not None and cached[0] == wanted:
+        return cached[1].seeds
+    if not ctx.config.overwrite:
+        try:
+            on_disk = json.loads(seed_provenance_path(ws, name).read_text()).get("fingerprint")
+            if on_disk == wanted:
+                seeds = read_array(seed_map_path(ws, name))
+                seeds = seeds[..., 0] if seeds.ndim == 3 else seeds
+                _remember_seeds(ctx, name, wanted, Checked(seeds))
+                return seeds
+        except (OSError, json.JSONDecodeError, MapFormatError):
+            pass
+    # the whole check, kept for this image's own geometric pass later in the run (unless that pass
+    # re-estimates, which checks the re-estimate instead)
+    checked = _check_photometric(ctx, name, setup, kept=not _reestimates(ctx, setup))
+    write_seeds(ws, name, checked.seeds, wanted)
+    _remember_seeds(ctx, name, wanted, checked)
+    return checked.seeds
+
+
+def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
+    cfg, ws = ctx.config, ctx.workspace
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    setup = _check_setup(ctx, name)
+    if isinstance(setup, str):
+        return RefOutcome(name, "geometric", "skipped", setup)
+    prov, sources, missing, entry = setup.prov, setup.sources, setup.missing, setup.entry
+    seed_fingerprint = fingerprint(setup.settings)
+    settings = dict(setup.settings, **pass_settings(cfg, "geometric"))  # + those the seeds ignore
+    splat_sources: dict[str, CheckSetup] = {}  # the sources whose seeds are projected in: their checks
+    if cfg.geometric.splat_min_sources > 0:
+        for s in sources:
+            found = _check_setup(ctx, s)
+            if not isinstance(found, str):
+                splat_sources[s] = found
+        settings["splat_seeds"] = {s: fingerprint(found.settings) for s, found in splat_sources.items()}
+    size = tuple(prov.get("image_size", ctx.map_size(name)))
+    if (not cfg.overwrite and is_current(ws, name, "geometric", fingerprint(settings), size)
+            and geometric_files_exist(ws, name)):
+        return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
+    t0 = time.perf_counter()
+    all_sources = list(prov.get("sources", []))
+    reestimate = _reestimates(ctx, setup)
+    reestimated = False
+    cached = ctx.seed_cache.get(name)
+    if (not reestimate and cached is not None and cached[0] == seed_fingerprint
+            and cached[1].depth is not None):  # checked earlier in this run, for another pass's seeds
+        checked = cached[1]
+        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
+        timings["reused_check"] = time.perf_counter() - t0
+    elif not reestimate:
+        checked = _check_photometric(ctx, name, setup)
+        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
+        timings["consistency"] = time.perf_counter() - t0
+    else:
+        # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;
+        # here the depth they agree on becomes dense hints of a second network run (the coarse planes
+        # centred on it, the cost modulated around it), whose maps are then checked as below.
+        ref, srcs, vis = _load_check(ctx, name, setup)
+        h, w = ref.depth.shape
+        check = _check_kwargs(ctx)
+        first = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+        seeds = _seeds(cfg, ref, first)  # from the photometric maps, as :func:`_source_seeds` makes them
+        agreed = (ref.depth > 0) & (first.count >= cfg.geometric.min_consistent)
+        hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
+        del first
+        timings["reestimate_hints"] = time.perf_counter() - t0
+        network_timings: dict[str, float] = {}
+        maps = network_maps(ctx, name, all_sources, network_timings, dense_hints=hints)
+        timings.update({f"reestimate_{k}": v for k, v in network_timings.items()})
+        if isinstance(maps, str):
+            return RefOutcome(name, "geometric", "skipped", maps)
+        ref = SourceMaps(maps.depth, maps.normals, ref.K, ref.cam_from_world)
+        vis = _check_visibility(maps.visibility, all_sources, sources, (h, w))
+        reestimated = True
+        t0 = time.perf_counter()
+        res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
+        depth, conf = _kept(cfg, ref, res, vis)
+        del res
+        timings["consistency"] = time.perf_counter() - t0
+    h, w = depth.shape
+    K = ctx.map_K(name, (w, h))
+    cam_from_world = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
+    keep = depth > 0
+    splatted = 0
+    if splat_sources:
+        # A dropped pixel whose surface other views confirmed: their seeds projected in (nearest
+        # surface per source), the median where enough of them agree (docs/CONVENTIONS.md).
+        t0 = time.perf_counter()
+        seed_maps = []
+        for s, found in splat_sources.items():
+            seeds_s = _source_seeds(ctx, s, found)
+            sh, sw = seeds_s.shape
+            seed_maps.append(SourceMaps(seeds_s, None, ctx.map_K(s, (sw, sh)),
+                                        to_homogeneous(ctx.sparse.image_by_name(s).cam_from_world)))
+        timings["splat_seeds"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geometric.splat_min_sources)
+        splat_conf = (SPLAT_CONFIDENCE * support / max(1, len(sources))).astype(np.float32)
+        added = ~keep & (splat > 0) & (splat_conf >= cfg.geometric.min_confidence)
+        depth = np.where(added, splat, depth).astype(np.float32)
+        conf = np.where(added, splat_conf, conf).astype(np.float32)
+        splatted = int(added.sum())
+        timings["splat"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    normals = fit_normals(depth, K)
+    depth[~np.any(normals != 0, axis=-1)] = 0.0
+    conf[depth == 0] = 0.0
+    timings["normals"] = time.perf_counter() - t0
+    dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
+                                                      float(depth.max(initial=2.0)))
+    extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
+             "kept_fraction": float((depth > 0).mean()), "splatted_fraction": splatted / depth.size,
+             "reestimated": reestimated}
+    _remember_seeds(ctx, name, seed_fingerprint, Checked(seeds))  # its own pass reruns its own check
+    ctx.submit_write(write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
+                     dr, timings, None, (), seeds, seed_fingerprint)
+    return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)

@@ -1,0 +1,170 @@
+"""The local backend of ``stereo``: every pass of every reference in this process.
+
+Python users (and the Ray backend) use :func:`~colmap_pvs.stereo.context.prepare_stereo` once, then
+:func:`process_reference` per reference and pass.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from tqdm import tqdm
+
+from ..config import save_config
+from ..errors import ConfigError, WorkspaceError
+from ..io.cleanup import remove_orphan_temps
+from ..io.workspace import write_fusion_cfg
+from .config import CONFIG_FILENAME, Stage, StereoConfig
+from .context import RefOutcome, StereoContext, StereoResult, prepare_stereo
+from .filled import filled_pass
+from .geometric import geometric_pass
+from .outputs import remove_filled
+from .photometric import photometric_pass
+
+logger = logging.getLogger(__name__)
+
+
+def process_reference(ctx: StereoContext, name: str, stage: Stage) -> RefOutcome:
+    """Compute (if not current) and atomically write one reference's maps for one pass.
+
+    The pass's depth map is written last (after its provenance), so its existence with matching
+    provenance marks the reference done. The geometric pass reads the photometric maps of ``name``
+    and of its sources. With background writes (``prepare_stereo(background_io=True)``) the files
+    appear after :meth:`StereoContext.flush`; ``timings`` then fills in ``writes`` at that point.
+    """
+    if stage == "photometric":
+        return photometric_pass(ctx, name)
+    if stage == "geometric":
+        return geometric_pass(ctx, name)
+    if stage == "filled":
+        return filled_pass(ctx, name)
+    raise ConfigError(f"stage must be 'photometric', 'geometric' or 'filled', got {stage!r}")
+
+
+def auxiliary_references(ctx: StereoContext) -> list[str]:
+    """Sources of the references that are not references themselves (``patch-match.cfg`` lists a
+    subset): the geometric pass needs their photometric maps, so they get a photometric pass too
+    (with automatic sources), but no geometric maps and no ``fusion.cfg`` entry."""
+    refs = set(ctx.references)
+    extra: dict[str, None] = {}
+    for name in ctx.references:
+        sources, _ = ctx.sources_of(name)
+        for s in sources or ():
+            if s not in refs:
+                extra[s] = None
+    return sorted(extra)
+
+
+_PASS_LABELS = {"geometric": ("stereo (geometric)", "geometric pass"),
+                "filled": ("stereo (dense completion)", "dense completion")}
+
+
+def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: StereoResult,
+                    outcomes: list[RefOutcome], skip: set[str]) -> None:
+    """Run the geometric or the completion pass over ``names`` (but ``skip``), filling
+    ``result.{stage}_processed / _done / _skipped`` and ``result.pass_seconds[stage]``."""
+    t_pass = time.perf_counter()
+    desc, label = _PASS_LABELS[stage]
+    processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
+    for name in tqdm(names, desc=desc, unit="image"):
+        if name in skip:
+            if stage == "filled":  # never keep a completion of maps this run did not make
+                remove_filled(ctx.workspace, name)
+            continue
+        out = process_reference(ctx, name, stage)
+        outcomes.append(out)
+        if out.status == "done":
+            done.append(name)
+        elif out.status == "skipped":
+            logger.warning("%s: skipping %s: %s", label, name, out.reason)
+            skipped[name] = out.reason
+        else:
+            processed.append(name)
+    ctx.flush()
+    result.pass_seconds[stage] = time.perf_counter() - t_pass
+
+
+def final_kind(config: StereoConfig) -> Stage:
+    return "geometric" if config.geometric.enabled else "photometric"
+
+
+
+
+def run_local(config: StereoConfig) -> StereoResult:
+    """:func:`run_stereo` in this process."""
+    wall = time.perf_counter()
+    ctx = prepare_stereo(config, background_io=True)
+    ws = ctx.workspace
+    remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
+    t_prepare = time.perf_counter() - wall
+    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
+                checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
+    result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
+    result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
+    result.timings["prepare"] = t_prepare
+    outcomes: list[RefOutcome] = []
+    names = list(ctx.references)
+    result.auxiliary = auxiliary_references(ctx) if config.geometric.enabled else []
+    work = names + result.auxiliary
+    try:
+        t_pass = time.perf_counter()
+        bar = tqdm(work, desc="stereo (photometric)", unit="image")
+        for i, name in enumerate(bar):
+            if i + 1 < len(work):
+                ctx.prefetch(work[i + 1])
+            out = process_reference(ctx, name, "photometric")
+            outcomes.append(out)
+            if i >= len(names):  # an auxiliary source: reported in result.auxiliary only
+                if out.status == "skipped":
+                    logger.warning("no photometric maps for source %s: %s", name, out.reason)
+                continue
+            if out.status == "done":
+                result.already_done.append(name)
+            elif out.status == "skipped":
+                logger.warning("skipping %s: %s", name, out.reason)
+                result.skipped[name] = out.reason
+            else:
+                result.processed.append(name)
+                bar.set_postfix(s=f"{out.seconds:.2f}")
+            sources, _ = ctx.sources_of(name)
+            if sources is not None:
+                result.sources[name] = sources
+        ctx.flush()
+        result.pass_seconds["photometric"] = time.perf_counter() - t_pass
+        if config.geometric.enabled:
+            _run_later_pass(ctx, names, "geometric", result, outcomes, set(result.skipped))
+        if config.geometric.enabled and config.completion.enabled:
+            _run_later_pass(ctx, names, "filled", result, outcomes,
+                            set(result.skipped) | set(result.geometric_skipped))
+        else:  # never keep a completion that no longer matches the maps
+            for name in names:
+                remove_filled(ws, name)
+    finally:
+        ctx.close()
+    for out in outcomes:
+        for stage, sec in out.timings.items():
+            key = stage if out.stage == "photometric" else f"{out.stage}.{stage}"
+            result.timings[key] = result.timings.get(key, 0.0) + sec
+    kind = final_kind(config)
+    done = [n for n in names
+            if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
+    if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
+        reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
+        raise WorkspaceError(
+            f"no {kind} depth map in {str(ws.stereo_dir)!r}: all {len(names)} reference(s) were skipped "
+            f"({reasons})"
+        )
+    write_fusion_cfg(ws.fusion_cfg, done)
+    computed = len(set(result.processed) | set(result.geometric_processed) | set(result.filled_processed))
+    total = time.perf_counter() - wall
+    result.pass_seconds["total"] = total
+    result.seconds_per_image = total / computed if computed else 0.0
+    logger.info(
+        "stereo: photometric %d computed, %d already done, %d skipped; geometric %d computed, %d done, "
+        "%d skipped; %.2f s/image",
+        len(result.processed), len(result.already_done), len(result.skipped),
+        len(result.geometric_processed), len(result.geometric_done), len(result.geometric_skipped),
+        result.seconds_per_image,
+    )
+    return result

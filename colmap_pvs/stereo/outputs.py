@@ -1,0 +1,184 @@
+"""What the ``stereo`` passes write: output paths, provenance (what made each pass's maps, so that a
+rerun keeps exactly the passes whose settings did not change) and the map writers.
+
+Every writer removes the pass's old depth map first and writes the new one last: a depth map with
+matching provenance marks a pass done, also after a crash.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..config import atomic_write_bytes, config_to_dict
+from ..errors import MapFormatError
+from ..io.maps import (
+    read_array,
+    read_depth_map,
+    save_depth_preview,
+    save_normal_preview,
+    save_scalar_preview,
+    write_array,
+    write_depth_map,
+    write_normal_map,
+)
+from ..io.workspace import Workspace
+from .config import FORMAT_VERSIONS, Stage, pass_settings
+
+if TYPE_CHECKING:
+    from .context import StereoContext
+
+
+def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
+    """``stereo/provenance/NAME.STAGE.json``: what produced that pass's maps of ``name``."""
+    ws.depth_map_path(name, stage)  # validates name and stage
+    return ws.stereo_dir / "provenance" / f"{name}.{stage}.json"
+
+
+def seed_map_path(ws: Workspace, name: str) -> Path:
+    """``stereo/seed_maps/NAME.bin``: the depth of the pixels of ``name`` that seed its dense completion
+    (at least ``geom_seed_min_consistent`` sources agree within ``geom_seed_depth_error``), 0 elsewhere."""
+    ws.depth_map_path(name, "geometric")  # validates name
+    return ws.stereo_dir / "seed_maps" / f"{name}.bin"
+
+
+def geometric_files_exist(ws: Workspace, name: str) -> bool:
+    """The geometric pass of ``name`` left its depth map and its seed map (the completion reads both)."""
+    return ws.depth_map_path(name, "geometric").is_file() and seed_map_path(ws, name).is_file()
+
+
+def fingerprint(settings: dict) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
+
+
+def stage_settings(ctx: StereoContext, stage: Stage, section: str, *, seeds: bool = False) -> dict:
+    """The settings of ``stage`` that its maps depend on (:func:`~colmap_pvs.stereo.config.pass_settings`
+    of ``ctx.config.<section>``), its name and its format version."""
+    out = pass_settings(ctx.config, section, seeds=seeds)
+    out.update(stage=stage, format_version=FORMAT_VERSIONS[stage])
+    return out
+
+
+def photometric_settings(ctx: StereoContext, name: str, sources: list[str]) -> dict:
+    """The resolved settings that determine ``name``'s photometric maps."""
+    s = stage_settings(ctx, "photometric", "photometric")
+    entry = ctx.selection.references[name]
+    s.update(checkpoint_sha256=ctx.checkpoint_sha256, sources=list(sources),
+             depth_range=[float(entry.depth_range[0]), float(entry.depth_range[1])],
+             model_config=config_to_dict(ctx.net.config))
+    return s
+
+
+def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
+    path = provenance_path(ws, name, stage)
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: tuple[int, int]) -> bool:
+    """The pass's depth map is readable, has the expected size and its provenance matches."""
+    prov = read_provenance(ws, name, stage)
+    if prov is None or prov.get("fingerprint") != fingerprint:
+        return False
+    try:
+        depth = read_depth_map(ws.depth_map_path(name, stage))
+    except (OSError, MapFormatError):
+        return False
+    return depth.shape == (size[1], size[0])
+
+
+def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, extra: dict) -> None:
+    payload = {"fingerprint": fingerprint(settings), "settings": settings, **extra}
+    atomic_write_bytes(provenance_path(ws, name, stage), (json.dumps(payload, indent=1) + "\n").encode())
+
+
+
+
+def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
+                depth_range, timings, vis=None, sources=(), seeds=None, seed_fingerprint=None) -> None:
+    """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
+    then its previews.
+
+    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``,
+    ``seeds`` ``[h, w]`` (geometric pass only) to :func:`seed_map_path`. Preview
+    names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
+    """
+    t0 = time.perf_counter()
+    # The old depth goes first: new provenance beside an old depth would look done after a crash.
+    ws.depth_map_path(name, stage).unlink(missing_ok=True)
+    write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
+    if vis is not None:
+        write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
+                    np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
+    if seeds is not None:
+        write_seeds(ws, name, seeds, seed_fingerprint)
+    write_normal_map(ws.normal_map_path(name, stage), normals)
+    write_provenance(ws, name, stage, settings, extra)
+    write_depth_map(ws.depth_map_path(name, stage), depth)  # last: marks the pass done
+    timings["writes"] = time.perf_counter() - t0
+    if previews:
+        t0 = time.perf_counter()
+        out = ws.stereo_dir / "previews"
+        stem = out / (f"{name}.photometric" if stage == "photometric" else name)
+        save_depth_preview(f"{stem}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
+        save_normal_preview(f"{stem}.normal.png", normals)
+        save_scalar_preview(f"{stem}.confidence.png", conf)
+        for k, src in enumerate(sources):
+            save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
+        timings["previews"] = time.perf_counter() - t0
+
+
+
+def seed_provenance_path(ws: Workspace, name: str) -> Path:
+    """``stereo/seed_maps/NAME.json``: the fingerprint of the check that made ``NAME.bin``."""
+    return seed_map_path(ws, name).with_name(f"{name}.json")
+
+
+def write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -> None:
+    """The seed map, then its fingerprint (which marks it current)."""
+    seed_provenance_path(ws, name).unlink(missing_ok=True)
+    write_array(seed_map_path(ws, name), seeds.astype(np.float32))
+    payload = json.dumps({"fingerprint": fingerprint}) + "\n"
+    atomic_write_bytes(seed_provenance_path(ws, name), payload.encode())
+
+
+
+
+def read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int]) -> np.ndarray:
+    path = ws.confidence_map_path(name, kind)
+    conf = read_array(path) if path.is_file() else np.zeros(shape, np.float32)
+    if conf.shape != shape:
+        raise MapFormatError(f"confidence map {str(path)!r} is {conf.shape}, its depth map is {shape}")
+    return conf
+
+
+def remove_filled(ws: Workspace, name: str) -> None:
+    """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done)."""
+    for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
+                 ws.confidence_map_path(name, "filled")):
+        path.unlink(missing_ok=True)
+
+
+
+
+def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previews, depth_range,
+                  timings) -> None:
+    """Write the dense completion: confidence, provenance, then the depth (which marks it done)."""
+    t0 = time.perf_counter()
+    # The old depth goes first: new provenance beside an old depth would look done after a crash
+    # (no other pass reads the completion, so nothing can miss it meanwhile).
+    ws.depth_map_path(name, "filled").unlink(missing_ok=True)
+    write_array(ws.confidence_map_path(name, "filled"), conf.astype(np.float32))
+    write_provenance(ws, name, "filled", settings, extra)
+    write_depth_map(ws.depth_map_path(name, "filled"), depth)
+    timings["writes"] = time.perf_counter() - t0
+    if previews:
+        save_depth_preview(ws.stereo_dir / "previews" / f"{name}.filled.depth.png", depth,
+                           vmin=depth_range[0], vmax=depth_range[1])
