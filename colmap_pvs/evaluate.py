@@ -54,7 +54,6 @@ uses open3d's voxel-centroid downsampling instead of DTU's minimum-distance thin
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import math
@@ -68,6 +67,7 @@ from tqdm import tqdm
 from . import __version__
 from .config import save_config
 from .errors import ConfigError, MapFormatError, ShapeError, WorkspaceError
+from .io.files import file_sha256  # re-exported for stereo.py until the package split; remove
 
 logger = logging.getLogger(__name__)
 
@@ -418,15 +418,6 @@ def read_gt_depth(path: str | Path, scale: float | None = None) -> np.ndarray:
         raise MapFormatError(f"GT depth {str(path)!r} has unsupported dtype {data.dtype}")
     depth = data.astype(np.float64) * (1.0 if scale is None else float(scale))
     return depth.astype(np.float32)
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file, read in chunks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _stereo_run_info(stereo_dir: Path) -> tuple[dict | None, str | None, str | None]:

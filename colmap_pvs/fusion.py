@@ -50,9 +50,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .config import make_temp_dir, parse_bool, save_config
+from .config import parse_bool, save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
+from .io.files import make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair

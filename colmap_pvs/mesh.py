@@ -26,8 +26,8 @@ from typing import Literal
 
 import numpy as np
 
-from .config import current_umask
 from .errors import ConfigError, MapFormatError
+from .io.files import current_umask
 from .io.ply import read_point_cloud, write_mesh
 
 logger = logging.getLogger(__name__)

@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import atomic_write_bytes, config_to_dict, make_temp_dir, save_config
+from .config import config_to_dict, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
+from .io.files import atomic_write_bytes, file_sha256, make_temp_dir
 from .io.images import check_image_file
 
 logger = logging.getLogger(__name__)
@@ -256,7 +257,6 @@ def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
 
 
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
-    from .evaluate import file_sha256
 
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),

@@ -11,9 +11,9 @@ import pytest
 import test_stereo
 
 from colmap_pvs.cli.main import main
-from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
 from colmap_pvs.io.cleanup import remove_orphan_temps
+from colmap_pvs.io.files import atomic_write_bytes, host_tag
 from colmap_pvs.io.workspace import read_patch_match_cfg
 from colmap_pvs.stereo import StereoConfig, run_stereo
 

@@ -59,8 +59,9 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import config_to_dict, make_temp_dir, save_config
+from ..config import config_to_dict, save_config
 from ..errors import ConfigError, WorkspaceError
+from .files import make_temp_dir
 from .images import read_image_size
 
 logger = logging.getLogger(__name__)
