@@ -68,6 +68,7 @@ from . import __version__
 from .config import save_config
 from .errors import ConfigError, MapFormatError, ShapeError, WorkspaceError
 from .io.files import file_sha256  # re-exported for stereo.py until the package split; remove
+from .upsampling import resize_nearest
 
 logger = logging.getLogger(__name__)
 
@@ -260,22 +261,6 @@ class _DepthSums:
             abs_under_pct={t: pct(c) for t, c in zip(self.abs_thresholds, self.abs_counts, strict=True)},
             scale=self.scale,
         )
-
-
-def resize_nearest(array: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Nearest-neighbour resize of ``[H, W]`` to ``[height, width]`` at pixel centres (no blending).
-
-    Output pixel ``(c, r)`` takes input pixel ``(floor((c + 0.5) W / width), floor((r + 0.5) H / height))``.
-    """
-    array = np.asarray(array)
-    if array.ndim != 2:
-        raise ShapeError(f"resize_nearest expects an [H, W] array, got shape {array.shape}")
-    h, w = array.shape
-    if (h, w) == (height, width):
-        return array
-    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
-    return array[rows[:, None], cols[None, :]]
 
 
 def thin_structure_mask(depth: np.ndarray, width: int = 4, gap: float = 0.8) -> np.ndarray:
