@@ -29,17 +29,17 @@ def report_mesh(path: Path) -> str:
 
 def report_import_poses(path: Path) -> str:
     import numpy as np
-    import pycolmap
 
     from colmap_pvs.io.import_poses import reprojection_errors
+    from colmap_pvs.io.sfm import model_counts
 
-    rec = pycolmap.Reconstruction(str(path))
+    counts = model_counts(path)
     errs = reprojection_errors(path)
     median = float(np.median(errs)) if errs.size else float("nan")
     mean = float(errs.mean()) if errs.size else float("nan")
     return (
         f"model: {path}\n"
-        f"images: {rec.num_reg_images()}  cameras: {rec.num_cameras()}  points: {rec.num_points3D()}  "
+        f"images: {counts.num_reg_images}  cameras: {counts.num_cameras}  points: {counts.num_points3D}  "
         f"observations: {errs.size}\n"
         f"reprojection error: median {_num(median, '.3f')} px, mean {_num(mean, '.3f')} px "
         f"(poses and intrinsics held fixed)"
