@@ -175,20 +175,21 @@ def mesh(config: MeshConfig) -> Path:
             f"point cloud {str(src)!r} has {len(cloud)} points; at least 4 are needed to mesh"
         )
     if config.method == "colmap":
-        import pycolmap
+        from .io.colmap_tools import poisson_meshing
 
         out.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".ply", dir=out.parent)
         os.close(fd)
         try:
-            options = pycolmap.PoissonMeshingOptions()
-            options.depth = config.depth
-            options.trim = (
-                config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            trim = config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            poisson_meshing(
+                src,
+                tmp,
+                depth=config.depth,
+                trim=trim,
+                point_weight=config.point_weight,
+                num_threads=config.num_threads,
             )
-            options.point_weight = config.point_weight
-            options.num_threads = config.num_threads
-            pycolmap.poisson_meshing(str(src), tmp, options=options)
             if os.path.getsize(tmp) == 0:
                 raise MapFormatError(f"COLMAP's Poisson mesher wrote nothing for {str(src)!r}")
             os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp made it private
