@@ -37,7 +37,7 @@ from .config import config_to_dict, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256
-from .io.images import check_image_file
+from .io.images import check_image_file, check_image_format
 
 logger = logging.getLogger(__name__)
 
@@ -163,7 +163,11 @@ class ReconstructResult:
         resumed: stages whose finished output was found and reused.
         sparse_path, dense_path, fused_path, mesh_path: outputs (``mesh_path`` ``None`` without mesh).
         stereo_skipped: images stereo skipped, with the reason.
-        previews_path: the folder of depth / normal / confidence PNGs (``None`` without previews).
+        skipped_photos: files of ``image_path`` that are not readable images (e.g. a text file named
+            ``IMG_0001.jpg``), left out before SfM, with the reason; not counted in ``num_images``.
+        previews_path: the folder of depth / normal / confidence PNGs (``None`` with previews off and
+            none written); set before the stages run, so it may not exist yet (see ``stopped_after``).
+        stopped_after: the ``stop_after`` stage of the run (``None``: it ran to the end).
         log_path: the folder of pycolmap's log (``None`` when it went to the terminal).
     """
 
@@ -179,7 +183,9 @@ class ReconstructResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     resumed: list[str] = field(default_factory=list)
     stereo_skipped: dict[str, str] = field(default_factory=dict)
+    skipped_photos: dict[str, str] = field(default_factory=dict)
     previews_path: Path | None = None
+    stopped_after: str | None = None
     log_path: Path | None = None
 
 
@@ -315,6 +321,27 @@ def _check_photos(folder: Path, names: list[str]) -> None:
         )
 
 
+def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[str, str]]:
+    """The photos an image decoder recognises, and the others (named, with the reason), each logged as
+    a skipped photo: COLMAP would silently fail to read them and report them as not registered."""
+    kept: list[str] = []
+    skipped: dict[str, str] = {}
+    for name in names:
+        try:
+            check_image_format(folder / name)
+        except WorkspaceError:
+            skipped[name] = "not a readable image (no image decoder recognises its content)"
+            logger.warning(
+                "reconstruct: skipping %s: %s; remove it from %s or replace it with a photo",
+                name,
+                skipped[name],
+                folder,
+            )
+            continue
+        kept.append(name)
+    return kept, skipped
+
+
 # --------------------------------------------------------------------------- SfM
 
 
@@ -409,7 +436,22 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
             f"no trained default checkpoint is shipped at {str(DEFAULT_CHECKPOINT)!r}; pass --checkpoint PATH"
         )
     _check_photos(image_dir, names)
-    result = ReconstructResult(workspace_path=root, num_images=len(names))
+    names, skipped_photos = _readable_photos(image_dir, names)
+    if len(names) < 2:
+        raise WorkspaceError(
+            f"image folder {str(image_dir)!r} has {len(names)} readable image(s); at least 2 are needed "
+            f"(skipped: {', '.join(skipped_photos)})"
+        )
+    dense = root / "dense"
+    previews = dense / "stereo" / "previews"
+    result = ReconstructResult(
+        workspace_path=root,
+        dense_path=dense,
+        num_images=len(names),
+        skipped_photos=skipped_photos,
+        previews_path=previews if config.previews or previews.is_dir() else None,
+        stopped_after=config.stop_after,
+    )
     prog = _Progress(root, result)
     checkpoint = Path(config.checkpoint) if config.checkpoint is not None else Path(DEFAULT_CHECKPOINT)
     prog.settings = _current_settings(config, names, checkpoint)
@@ -525,7 +567,7 @@ def _reconstruct(
         prog.mark("stereo")
         prog.stop()
     previews = dense / "stereo" / "previews"
-    result.previews_path = previews if previews.is_dir() else None
+    result.previews_path = previews if config.previews or previews.is_dir() else None
     if config.stop_after == "stereo":
         return
 
