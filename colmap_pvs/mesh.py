@@ -134,11 +134,18 @@ def poisson_mesh(
     pcd.normals = o3d.utility.Vector3dVector(normals / np.linalg.norm(normals, axis=1, keepdims=True))
     if colors is not None:
         pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64) / 255.0)
+    logger.info("meshing: Poisson reconstruction at depth %d of %s points ...", config.depth, f"{len(xyz):,}")
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh_o3d, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             pcd, depth=config.depth, n_threads=config.num_threads, point_weight=config.point_weight
         )
     densities = np.asarray(densities)
+    logger.info(
+        "meshing: trimming the %s-vertex surface (density below the %g quantile, %s) ...",
+        f"{len(densities):,}",
+        config.density_quantile,
+        f"outside the bounding box + {config.bbox_margin:g}" if config.bbox_margin >= 0 else "no crop",
+    )
     remove = np.zeros(len(densities), dtype=bool)
     if config.density_quantile > 0 and densities.size:
         remove |= densities < np.quantile(densities, config.density_quantile)
@@ -182,6 +189,12 @@ def mesh(config: MeshConfig) -> Path:
         os.close(fd)
         try:
             trim = config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            logger.info(
+                "meshing: COLMAP's Poisson reconstruction at depth %d (trim %g) of %s points ...",
+                config.depth,
+                trim,
+                f"{len(cloud):,}",
+            )
             poisson_meshing(
                 src,
                 tmp,
@@ -202,6 +215,7 @@ def mesh(config: MeshConfig) -> Path:
             raise MapFormatError(
                 f"the Poisson mesh of {str(src)!r} is empty after trimming; lower --density_quantile"
             )
+        logger.info("meshing: writing %s ...", out)
         write_mesh(out, vertices, faces, normals=vnormals, colors=vcolors)
         logger.info("mesh: %d vertices, %d faces", len(vertices), len(faces))
     logger.info("mesh: wrote %s in %.1f s", out, time.perf_counter() - start)
