@@ -460,10 +460,12 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     remove_orphan_temps(root)
     remove_orphan_temps(prog.markers)
     save_config(config, root / "colmap_pvs_reconstruct.json")
-    from .io import pycolmap_output
+    from .io.pycolmap_output import (  # pycolmap itself is imported only inside io/
+        pycolmap_log_to_file,
+    )
 
     quiet = not logging.getLogger("colmap_pvs").isEnabledFor(logging.DEBUG)
-    with pycolmap_output.pycolmap_log_to_file(root / "logs", enabled=quiet) as log_dir:
+    with pycolmap_log_to_file(root / "logs", enabled=quiet) as log_dir:
         result.log_path = log_dir
         _reconstruct(config, root, names, prog, result)
     return result
