@@ -35,9 +35,10 @@ import numpy as np
 import real_depth as rd
 from visibility_check import true_visibility
 
-from colmap_pvs.evaluate import compute_depth_metrics, read_gt_depth, resize_nearest
+from colmap_pvs.evaluate import compute_depth_metrics, read_gt_depth
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.io.sparse import read_sparse_model
+from colmap_pvs.upsampling import resize_nearest
 
 KINDS = ("photometric", "geometric", "filled")
 #: Relative error shown at full brightness in the picture.

@@ -165,7 +165,7 @@ def far_sources(ref_index: int, names: list[str], row: dict[str, float], count: 
 def make_ablation_checkpoint(checkpoint: Path, out: Path) -> Path:
     """The same weights with ``visibility`` off (mean aggregation); the visibility net is dropped."""
     from colmap_pvs.config import replace_config
-    from colmap_pvs.evaluate import file_sha256
+    from colmap_pvs.io.files import file_sha256
     from colmap_pvs.model import PVSNet, load_checkpoint, save_checkpoint
 
     model, meta = load_checkpoint(checkpoint, map_location="cpu")
@@ -194,7 +194,7 @@ def make_switch_off_checkpoint(checkpoint: Path, out: Path, switch: str) -> Path
     """The same weights with the boolean ``PVSNetConfig`` field ``switch`` off (``None`` if it is off
     already): e.g. ``sparse_guidance`` or ``sparse_prior``, which add no parameters."""
     from colmap_pvs.config import replace_config
-    from colmap_pvs.evaluate import file_sha256
+    from colmap_pvs.io.files import file_sha256
     from colmap_pvs.model import PVSNet, load_checkpoint, save_checkpoint
 
     model, meta = load_checkpoint(checkpoint, map_location="cpu")
@@ -508,7 +508,7 @@ def main(argv: list[str] | None = None) -> int:
     # The baseline has no stereo record (checkpoint unknown) and missing outputs show in the table.
     logging.getLogger("colmap_pvs.evaluate").setLevel(logging.ERROR)
 
-    from colmap_pvs.evaluate import file_sha256
+    from colmap_pvs.io.files import file_sha256
     from colmap_pvs.io.sparse import read_sparse_model
     from colmap_pvs.io.workspace import write_patch_match_cfg
     from colmap_pvs.views import ViewSelectionConfig, select_views

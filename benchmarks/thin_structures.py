@@ -36,10 +36,11 @@ import numpy as np
 import real_depth as rd
 
 from colmap_pvs.config import config_from_dict
-from colmap_pvs.evaluate import resize_nearest, thin_structure_mask
+from colmap_pvs.evaluate import thin_structure_mask
 from colmap_pvs.io.maps import colorize_depth, read_array
 from colmap_pvs.stereo import StereoConfig, run_stereo
 from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
+from colmap_pvs.upsampling import resize_nearest
 
 WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "thin"
 

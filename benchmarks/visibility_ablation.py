@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"checkpoint {path} of {label!r} does not exist", file=sys.stderr)
             return 2
 
-    from colmap_pvs.evaluate import file_sha256
+    from colmap_pvs.io.files import file_sha256
     from colmap_pvs.io.sparse import read_sparse_model
     from colmap_pvs.train.trainer import plot_curves
     from colmap_pvs.views import ViewSelectionConfig, select_views

@@ -24,10 +24,11 @@ from pathlib import Path
 import numpy as np
 import real_depth as rd
 
-from colmap_pvs.evaluate import read_gt_depth, resize_nearest
+from colmap_pvs.evaluate import read_gt_depth
 from colmap_pvs.geometry import backproject_depth, scale_intrinsics
 from colmap_pvs.io.maps import read_array
 from colmap_pvs.io.sparse import read_sparse_model
+from colmap_pvs.upsampling import resize_nearest
 
 #: Relative depth difference within which a source's GT depth sees the reference's point.
 OCCLUSION_TOLERANCE = 0.05

@@ -29,17 +29,17 @@ def report_mesh(path: Path) -> str:
 
 def report_import_poses(path: Path) -> str:
     import numpy as np
-    import pycolmap
 
     from colmap_pvs.io.import_poses import reprojection_errors
+    from colmap_pvs.io.sfm import model_counts
 
-    rec = pycolmap.Reconstruction(str(path))
+    counts = model_counts(path)
     errs = reprojection_errors(path)
     median = float(np.median(errs)) if errs.size else float("nan")
     mean = float(errs.mean()) if errs.size else float("nan")
     return (
         f"model: {path}\n"
-        f"images: {rec.num_reg_images()}  cameras: {rec.num_cameras()}  points: {rec.num_points3D()}  "
+        f"images: {counts.num_reg_images}  cameras: {counts.num_cameras}  points: {counts.num_points3D}  "
         f"observations: {errs.size}\n"
         f"reprojection error: median {_num(median, '.3f')} px, mean {_num(mean, '.3f')} px "
         f"(poses and intrinsics held fixed)"
@@ -52,22 +52,37 @@ def report_reconstruct(result) -> str:
         f"images registered: {result.num_registered}/{result.num_images}"
         f"   sparse points: {result.num_points3D}"
         f"   fused points: {result.num_fused_points}",
-        "time per stage:",
     ]
+    lines += [f"  skipped photo {name}: {why} (not counted)" for name, why in result.skipped_photos.items()]
+    lines.append("time per stage:")
     for stage, seconds in result.stage_seconds.items():
         note = "  (already done)" if stage in result.resumed else ""
         lines.append(f"  {stage:<10} {seconds:8.1f} s{note}")
     lines.append(f"  {'total':<10} {sum(result.stage_seconds.values()):8.1f} s")
     lines += [f"  stereo skipped {name}: {why}" for name, why in result.stereo_skipped.items()]
+    why_not = f"; the run stopped after {result.stopped_after}" if result.stopped_after else ""
+    dense = result.dense_path
+    if dense is None:
+        dense_line = "  dense workspace: (none)"
+    elif dense.is_dir():
+        dense_line = f"  dense workspace: {dense}"
+    else:
+        dense_line = f"  dense workspace: {dense}  (not made yet{why_not})"
     previews = result.previews_path
-    n_previews = len(list(previews.glob("*.depth.png"))) if previews is not None else 0
+    if previews is None:
+        previews_line = "  previews:        (off; run with --previews true)"
+    elif previews.is_dir():
+        n_previews = len(list(previews.glob("*.depth.png")))
+        previews_line = (
+            f"  previews:        {previews}  ({n_previews} depth maps as PNG, with normals and confidence)"
+        )
+    else:
+        previews_line = f"  previews:        {previews}  (none yet: stereo has not run{why_not})"
     lines += [
         "where to look:",
-        f"  sparse model:    {result.sparse_path}",
-        f"  dense workspace: {result.dense_path}",
-        f"  previews:        {previews}  ({n_previews} depth maps as PNG, with normals and confidence)"
-        if previews is not None
-        else "  previews:        (none; run with --previews true)",
+        f"  sparse model:    {result.sparse_path if result.sparse_path is not None else '(none)'}",
+        dense_line,
+        previews_line,
         f"  fused cloud:     {result.fused_path if result.fused_path is not None else '(none)'}",
         f"  mesh:            {result.mesh_path if result.mesh_path is not None else '(none)'}",
         f"  pycolmap log:    {result.log_path if result.log_path is not None else '(on the terminal)'}",

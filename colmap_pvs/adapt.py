@@ -33,9 +33,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import atomic_write_bytes, config_to_dict
+from .config import config_to_dict
 from .errors import ConfigError
-from .evaluate import file_sha256
+from .io.files import file_sha256
+from .io.files import atomic_write_bytes
 
 logger = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ import torch
 
 from .config import config_to_dict, save_config
 from .errors import CheckpointError, ConfigError
-from .evaluate import file_sha256
+from .io.files import file_sha256
 from .model import PARAMETER_FREE_FIELDS, PVSNet, load_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)

@@ -21,20 +21,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import logging
 import math
 import numbers
 import os
-import socket
-import tempfile
 import types
 import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
-from .errors import ConfigError, OutputError
+from .errors import ConfigError
+from .io.files import atomic_write_bytes
 
 C = TypeVar("C")
 logger = logging.getLogger(__name__)
@@ -325,69 +323,6 @@ def config_to_flags(cfg: Any) -> dict[str, Any]:
     return out
 
 
-def current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def host_tag() -> str:
-    """8 hex digits identifying this host in temporary file names."""
-    return hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
-
-
-def temp_tag() -> str:
-    """``pvs-HOST-PID``: marks our temporary files so that a later run can tell orphans (their process is
-    gone) from files a running process is still writing (:mod:`colmap_pvs.io.cleanup`)."""
-    return f"pvs-{host_tag()}-{os.getpid()}"
-
-
-def write_temp_file(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to a new temporary file beside ``path`` (usual permissions) and return its path.
-
-    The caller renames it into place (``os.replace``) or removes it.
-
-    Raises:
-        OutputError: the folder is not writable or the disk is full (nothing is left behind).
-    """
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{temp_tag()}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp creates 0600; give the usual permissions
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return Path(tmp)
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename.
-
-    Raises:
-        OutputError: the folder is not writable or the disk is full (nothing is left behind).
-    """
-    path = Path(path)
-    tmp = write_temp_file(path, data)
-    try:
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
 def save_config(cfg: Any, path: str | os.PathLike, **extra: Any) -> Path:
     """Save the resolved config as JSON (atomically). ``extra`` keys are stored beside it."""
     payload = {"config_class": type(cfg).__name__, "config": config_to_dict(cfg)}
@@ -478,16 +413,3 @@ def config_from_args(cls: type[C], args: argparse.Namespace, **overrides: Any) -
     data = {k: v for k, v in vars(args).items() if k in specs}
     data.update(overrides)
     return config_from_dict(cls, data)
-
-
-def make_temp_dir(parent: str | os.PathLike, prefix: str, suffix: str = ".tmp") -> Path:
-    """A temporary folder inside ``parent`` (to be renamed into place) with the usual permissions.
-
-    ``tempfile.mkdtemp`` creates ``0700`` folders; outputs renamed from it would be private.
-    """
-    try:
-        path = Path(tempfile.mkdtemp(prefix=f"{prefix}{temp_tag()}.", suffix=suffix, dir=parent))
-    except OSError as exc:
-        raise OutputError(f"cannot create a folder in {str(parent)!r}: {exc.strerror or exc}") from None
-    os.chmod(path, 0o777 & ~current_umask())
-    return path

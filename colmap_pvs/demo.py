@@ -123,9 +123,7 @@ def run_demo(config: DemoConfig) -> DemoResult:
     from .synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
 
     start = time.perf_counter()
-    checkpoint = (
-        Path(config.checkpoint) if config.checkpoint is not None else Path(stereo_module.config.DEFAULT_CHECKPOINT)
-    )
+    checkpoint = Path(config.checkpoint or stereo_module.config.DEFAULT_CHECKPOINT)
     if not checkpoint.is_file():
         raise CheckpointError(
             f"the demo needs a trained checkpoint, but {str(checkpoint)!r} does not exist"

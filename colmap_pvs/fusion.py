@@ -50,9 +50,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .config import make_temp_dir, parse_bool, save_config
+from .config import parse_bool, save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
+from .io.files import make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair
@@ -93,16 +94,6 @@ CONFIG_SUFFIX = ".fuse_config.json"
 #: little). For comparison our ``pvs`` fusion keeps 151819 points at 0.102 % on the middle column.
 COLMAP_DEFAULTS: dict[str, Any] = {"min_num_pixels": 3, "max_normal_error": 20.0}
 
-_COLMAP_METHODS = {"check", "mergedict", "summary", "todict"}
-
-
-def _colmap_option_types() -> dict[str, type]:
-    import pycolmap
-
-    defaults = pycolmap.StereoFusionOptions().todict()
-    return {k: type(v) for k, v in defaults.items() if k not in _COLMAP_METHODS}
-
-
 def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
     """Parse ``key=value`` strings into typed ``pycolmap.StereoFusionOptions`` values.
 
@@ -112,9 +103,9 @@ def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
         ConfigError: a malformed item, an unknown key (named, with the known ones) or a value of the
             wrong type; also when the resulting options fail COLMAP's own ``check()``.
     """
-    import pycolmap
+    from .io.colmap_tools import stereo_fusion_option_types, stereo_fusion_options_ok
 
-    types_ = _colmap_option_types()
+    types_ = stereo_fusion_option_types()
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = str(item).partition("=")
@@ -145,10 +136,7 @@ def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
                 f"colmap_options: bad value {value!r} for {key!r} (expected {tp.__name__}): {exc}"
             ) from None
         out[key] = parsed
-    options = pycolmap.StereoFusionOptions()
-    for key, value in {**COLMAP_DEFAULTS, **out}.items():
-        setattr(options, key, value)
-    if not options.check():
+    if not stereo_fusion_options_ok({**COLMAP_DEFAULTS, **out}):
         raise ConfigError(f"colmap_options: COLMAP rejects the fusion options {list(items)} (see its log)")
     return out
 
@@ -555,11 +543,9 @@ def _map_problem(ws: Workspace, name: str, input_type: str) -> str | None:
 def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: FuseResult) -> None:
     """COLMAP's fusion on a view of the workspace (symbolic links) whose ``fusion.cfg`` lists ``names``:
     only the maps that were checked are fused, and the user's ``stereo/fusion.cfg`` is never touched."""
-    import pycolmap
+    from .io.colmap_tools import stereo_fusion
 
-    options = pycolmap.StereoFusionOptions()
-    for key, value in {**COLMAP_DEFAULTS, **parse_colmap_options(config.colmap_options)}.items():
-        setattr(options, key, value)
+    options = {**COLMAP_DEFAULTS, **parse_colmap_options(config.colmap_options)}
     out = result.output_path
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = make_temp_dir(out.parent, prefix=f".{out.name}.")
@@ -573,9 +559,7 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
         write_fusion_cfg(view / "stereo" / "fusion.cfg", names)
         tmp_ply = tmp / out.name
         try:
-            pycolmap.stereo_fusion(
-                str(tmp_ply), str(view), input_type=config.input_type, options=options, output_type="PLY"
-            )
+            stereo_fusion(tmp_ply, view, input_type=config.input_type, options=options)
         except RuntimeError as exc:
             first = str(exc).strip().splitlines()
             raise WorkspaceError(

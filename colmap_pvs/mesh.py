@@ -26,8 +26,8 @@ from typing import Literal
 
 import numpy as np
 
-from .config import current_umask
 from .errors import ConfigError, MapFormatError
+from .io.files import current_umask
 from .io.ply import read_point_cloud, write_mesh
 
 logger = logging.getLogger(__name__)
@@ -134,11 +134,18 @@ def poisson_mesh(
     pcd.normals = o3d.utility.Vector3dVector(normals / np.linalg.norm(normals, axis=1, keepdims=True))
     if colors is not None:
         pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64) / 255.0)
+    logger.info("meshing: Poisson reconstruction at depth %d of %s points ...", config.depth, f"{len(xyz):,}")
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh_o3d, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             pcd, depth=config.depth, n_threads=config.num_threads, point_weight=config.point_weight
         )
     densities = np.asarray(densities)
+    logger.info(
+        "meshing: trimming the %s-vertex surface (density below the %g quantile, %s) ...",
+        f"{len(densities):,}",
+        config.density_quantile,
+        f"outside the bounding box + {config.bbox_margin:g}" if config.bbox_margin >= 0 else "no crop",
+    )
     remove = np.zeros(len(densities), dtype=bool)
     if config.density_quantile > 0 and densities.size:
         remove |= densities < np.quantile(densities, config.density_quantile)
@@ -175,20 +182,27 @@ def mesh(config: MeshConfig) -> Path:
             f"point cloud {str(src)!r} has {len(cloud)} points; at least 4 are needed to mesh"
         )
     if config.method == "colmap":
-        import pycolmap
+        from .io.colmap_tools import poisson_meshing
 
         out.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".ply", dir=out.parent)
         os.close(fd)
         try:
-            options = pycolmap.PoissonMeshingOptions()
-            options.depth = config.depth
-            options.trim = (
-                config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            trim = config.colmap_trim if config.colmap_trim is not None else max(0.0, config.depth - 3.0)
+            logger.info(
+                "meshing: COLMAP's Poisson reconstruction at depth %d (trim %g) of %s points ...",
+                config.depth,
+                trim,
+                f"{len(cloud):,}",
             )
-            options.point_weight = config.point_weight
-            options.num_threads = config.num_threads
-            pycolmap.poisson_meshing(str(src), tmp, options=options)
+            poisson_meshing(
+                src,
+                tmp,
+                depth=config.depth,
+                trim=trim,
+                point_weight=config.point_weight,
+                num_threads=config.num_threads,
+            )
             if os.path.getsize(tmp) == 0:
                 raise MapFormatError(f"COLMAP's Poisson mesher wrote nothing for {str(src)!r}")
             os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp made it private
@@ -201,6 +215,7 @@ def mesh(config: MeshConfig) -> Path:
             raise MapFormatError(
                 f"the Poisson mesh of {str(src)!r} is empty after trimming; lower --density_quantile"
             )
+        logger.info("meshing: writing %s ...", out)
         write_mesh(out, vertices, faces, normals=vnormals, colors=vcolors)
         logger.info("mesh: %d vertices, %d faces", len(vertices), len(faces))
     logger.info("mesh: wrote %s in %.1f s", out, time.perf_counter() - start)

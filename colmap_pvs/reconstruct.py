@@ -24,29 +24,20 @@ logger is at DEBUG) and every SfM stage has a progress bar.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
-import os
 import shutil
-import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import (
-    atomic_write_bytes,
-    config_to_dict,
-    config_to_flags,
-    make_temp_dir,
-    replace_config,
-    save_config,
-)
+from .config import config_to_dict, config_to_flags, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
-from .io.images import check_image_file
+from .io.files import atomic_write_bytes, file_sha256
+from .io.images import check_image_file, check_image_format
 from .stereo.config import StereoConfig
 
 logger = logging.getLogger(__name__)
@@ -152,7 +143,11 @@ class ReconstructResult:
         resumed: stages whose finished output was found and reused.
         sparse_path, dense_path, fused_path, mesh_path: outputs (``mesh_path`` ``None`` without mesh).
         stereo_skipped: images stereo skipped, with the reason.
-        previews_path: the folder of depth / normal / confidence PNGs (``None`` without previews).
+        skipped_photos: files of ``image_path`` that are not readable images (e.g. a text file named
+            ``IMG_0001.jpg``), left out before SfM, with the reason; not counted in ``num_images``.
+        previews_path: the folder of depth / normal / confidence PNGs (``None`` with previews off and
+            none written); set before the stages run, so it may not exist yet (see ``stopped_after``).
+        stopped_after: the ``stop_after`` stage of the run (``None``: it ran to the end).
         log_path: the folder of pycolmap's log (``None`` when it went to the terminal).
     """
 
@@ -168,7 +163,9 @@ class ReconstructResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     resumed: list[str] = field(default_factory=list)
     stereo_skipped: dict[str, str] = field(default_factory=dict)
+    skipped_photos: dict[str, str] = field(default_factory=dict)
     previews_path: Path | None = None
+    stopped_after: str | None = None
     log_path: Path | None = None
 
 
@@ -243,7 +240,6 @@ def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
 
 
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
-    from .evaluate import file_sha256
 
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
@@ -311,39 +307,36 @@ def _check_photos(folder: Path, names: list[str]) -> None:
         )
 
 
+def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[str, str]]:
+    """The photos an image decoder recognises, and the others (named, with the reason), each logged as
+    a skipped photo: COLMAP would silently fail to read them and report them as not registered."""
+    kept: list[str] = []
+    skipped: dict[str, str] = {}
+    for name in names:
+        try:
+            check_image_format(folder / name)
+        except WorkspaceError:
+            skipped[name] = "not a readable image (no image decoder recognises its content)"
+            logger.warning(
+                "reconstruct: skipping %s: %s; remove it from %s or replace it with a photo",
+                name,
+                skipped[name],
+                folder,
+            )
+            continue
+        kept.append(name)
+    return kept, skipped
+
+
 # --------------------------------------------------------------------------- SfM
-
-
-def _sequential_pairs(n: int, overlap: int = 10, quadratic: bool = True) -> int:
-    """Number of image pairs COLMAP's sequential matcher matches (no loop detection)."""
-    pairs = set()
-    for i in range(n):
-        for k in range(1, overlap + 1):
-            if i + k < n:
-                pairs.add((i, i + k))
-        if quadratic:
-            for k in range(overlap):
-                if i + (1 << k) < n:
-                    pairs.add((i, i + (1 << k)))
-    return len(pairs)
-
-
-def _clear_matches(db: Path) -> None:
-    """Forget the matches of a database (COLMAP's matchers skip pairs that are already matched)."""
-    with contextlib.closing(sqlite3.connect(str(db))) as con:
-        con.execute("DELETE FROM matches")
-        con.execute("DELETE FROM two_view_geometries")
-        con.commit()
 
 
 def _run_sfm(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, stop_after: str | None
 ) -> Path | None:
     """Features, matching and mapping; ``None`` when ``stop_after`` stopped it before a model exists."""
-    import pycolmap
-    from tqdm import tqdm
-
-    from .io.pycolmap_output import DatabaseProgress
+    from .io.features import clear_matches, extract_features, match_features, resolve_matcher
+    from .io.sfm import incremental_mapping
 
     image_dir = Path(config.image_path)
     db = root / "database.db"
@@ -361,23 +354,18 @@ def _run_sfm(
             p.unlink(missing_ok=True)
         prog.unmark("matching")
         prog.overwrite.discard("matching")  # a new database has no matches to forget
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = config.num_threads
-        extraction.max_image_size = config.sift_max_image_size
-        extraction.sift.max_num_features = config.max_num_features
-        extraction.sift.peak_threshold = config.sift_peak_threshold
-        reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
-        mode = pycolmap.CameraMode.SINGLE if config.single_camera else pycolmap.CameraMode.AUTO
-        with DatabaseProgress(db, "keypoints", len(names), "features", "image"):
-            pycolmap.extract_features(
-                str(db),
-                str(image_dir),
-                image_names=names,
-                camera_mode=mode,
-                reader_options=reader,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
+        extract_features(
+            db,
+            image_dir,
+            names,
+            camera_model=config.camera_model,
+            single_camera=config.single_camera,
+            num_threads=config.num_threads,
+            max_image_size=config.sift_max_image_size,
+            max_num_features=config.max_num_features,
+            peak_threshold=config.sift_peak_threshold,
+            progress=True,
+        )
         prog.mark("features")
         prog.stop()
     if stop_after == "features":
@@ -388,64 +376,19 @@ def _run_sfm(
     else:
         prog.start("matching")
         if "matching" in prog.overwrite:
-            _clear_matches(db)
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = config.num_threads
-        use = config.matcher
-        if use == "auto":
-            use = "exhaustive" if len(names) <= config.exhaustive_max_images else "sequential"
+            clear_matches(db)
+        use = resolve_matcher(config.matcher, len(names), config.exhaustive_max_images)
         logger.info("reconstruct: %s matching of %d images", use, len(names))
-        n = len(names)
-        total = n * (n - 1) // 2 if use == "exhaustive" else _sequential_pairs(n)
-        with DatabaseProgress(db, "matches", total, "matching", "pair"):
-            if use == "exhaustive":
-                pycolmap.match_exhaustive(str(db), matching_options=matching, device=pycolmap.Device.cpu)
-            else:
-                pycolmap.match_sequential(str(db), matching_options=matching, device=pycolmap.Device.cpu)
+        match_features(db, use, num_images=len(names), num_threads=config.num_threads, progress=True)
         prog.mark("matching")
         prog.stop()
     if stop_after == "matching":
         return None
 
     prog.start("mapping")
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = config.num_threads
-    tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=root)
-    bar = tqdm(total=len(names), desc="mapping", unit="image")
-
-    def registered() -> None:
-        if bar.n < bar.total:
-            bar.update(1)
-
-    try:
-        try:
-            models = pycolmap.incremental_mapping(
-                str(db), str(image_dir), str(tmp), options=options, next_image_callback=registered
-            )
-        finally:
-            bar.close()
-        if not models:
-            raise WorkspaceError(
-                f"SfM registered no images of {str(image_dir)!r}: too few matches "
-                "(check the overlap, or raise "
-                "--max_num_features)"
-            )
-        best_idx, best = max(models.items(), key=lambda kv: kv[1].num_reg_images())
-        if len(models) > 1:
-            logger.warning(
-                "SfM produced %d separate models; keeping the largest (%d images)",
-                len(models),
-                best.num_reg_images(),
-            )
-        out = tmp / "best"
-        out.mkdir()
-        best.write(str(out))
-        sparse.parent.mkdir(parents=True, exist_ok=True)
-        if sparse.exists():
-            shutil.rmtree(sparse)
-        os.replace(out, sparse)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    incremental_mapping(
+        db, image_dir, sparse, num_threads=config.num_threads, num_images=len(names), work_dir=root
+    )
     prog.mark("mapping")
     prog.stop()
     return sparse
@@ -479,7 +422,22 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
             f"no trained default checkpoint is shipped at {str(DEFAULT_CHECKPOINT)!r}; pass --checkpoint PATH"
         )
     _check_photos(image_dir, names)
-    result = ReconstructResult(workspace_path=root, num_images=len(names))
+    names, skipped_photos = _readable_photos(image_dir, names)
+    if len(names) < 2:
+        raise WorkspaceError(
+            f"image folder {str(image_dir)!r} has {len(names)} readable image(s); at least 2 are needed "
+            f"(skipped: {', '.join(skipped_photos)})"
+        )
+    dense = root / "dense"
+    previews = dense / "stereo" / "previews"
+    result = ReconstructResult(
+        workspace_path=root,
+        dense_path=dense,
+        num_images=len(names),
+        skipped_photos=skipped_photos,
+        previews_path=previews if config.previews or previews.is_dir() else None,
+        stopped_after=config.stop_after,
+    )
     prog = _Progress(root, result)
     checkpoint = Path(config.stereo.checkpoint or DEFAULT_CHECKPOINT)
     prog.settings = _current_settings(config, names, checkpoint)
@@ -488,7 +446,9 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     remove_orphan_temps(root)
     remove_orphan_temps(prog.markers)
     save_config(config, root / "colmap_pvs_reconstruct.json")
-    from .io.pycolmap_output import pycolmap_log_to_file
+    from .io.pycolmap_output import (  # pycolmap itself is imported only inside io/
+        pycolmap_log_to_file,
+    )
 
     quiet = not logging.getLogger("colmap_pvs").isEnabledFor(logging.DEBUG)
     with pycolmap_log_to_file(root / "logs", enabled=quiet) as log_dir:
@@ -500,10 +460,9 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
 def _reconstruct(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, result: ReconstructResult
 ) -> None:
-    import pycolmap
-
     from .fusion import FuseConfig, fuse
     from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
+    from .io.sfm import model_counts
     from .io.workspace import UndistortConfig, detect_workspace, undistort
     from .mesh import DEFAULT_MESH_NAME, MeshConfig, mesh
     from .stereo import run_stereo
@@ -525,10 +484,10 @@ def _reconstruct(
         if "mapping" not in result.resumed and (root / "dense").exists():
             logger.info("reconstruct: new sparse model; removing the stale dense workspace")
             shutil.rmtree(root / "dense")
-    rec = pycolmap.Reconstruction(str(sparse))
+    counts = model_counts(sparse)
     result.sparse_path = sparse
-    result.num_registered = rec.num_reg_images()
-    result.num_points3D = rec.num_points3D()
+    result.num_registered = counts.num_reg_images
+    result.num_points3D = counts.num_points3D
     logger.info(
         "reconstruct: sparse model: %d/%d images registered, %d points",
         result.num_registered,
@@ -583,7 +542,7 @@ def _reconstruct(
         prog.mark("stereo")
         prog.stop()
     previews = dense / "stereo" / "previews"
-    result.previews_path = previews if previews.is_dir() else None
+    result.previews_path = previews if config.previews or previews.is_dir() else None
     if config.stop_after == "stereo":
         return
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import ShapeError
 
-__all__ = ["guided_upsample_depth", "resize_area", "resize_bilinear", "sample_depth_down"]
+__all__ = ["guided_upsample_depth", "resize_area", "resize_bilinear", "resize_nearest", "sample_depth_down"]
 
 
 def resize_bilinear(values: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -37,6 +37,22 @@ def resize_area(values: np.ndarray, height: int, width: int) -> np.ndarray:
     if values.ndim != 2:
         raise ShapeError(f"resize_area expects [h, w], got shape {values.shape}")
     return cv2.resize(values, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def resize_nearest(array: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of ``[H, W]`` to ``[height, width]`` at pixel centres (no blending).
+
+    Output pixel ``(c, r)`` takes input pixel ``(floor((c + 0.5) W / width), floor((r + 0.5) H / height))``.
+    """
+    array = np.asarray(array)
+    if array.ndim != 2:
+        raise ShapeError(f"resize_nearest expects an [H, W] array, got shape {array.shape}")
+    h, w = array.shape
+    if (h, w) == (height, width):
+        return array
+    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return array[rows[:, None], cols[None, :]]
 
 
 def sample_depth_down(depth: np.ndarray, height: int, width: int) -> np.ndarray:

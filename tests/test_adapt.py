@@ -14,7 +14,7 @@ from scenes import stereo_config
 from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
 from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ConfigError
-from colmap_pvs.evaluate import file_sha256
+from colmap_pvs.io.files import file_sha256
 from colmap_pvs.model import load_checkpoint
 from colmap_pvs.stereo import run_stereo
 from colmap_pvs.train import real_dataset

@@ -11,7 +11,7 @@ from conftest import make_tiny_checkpoint
 
 from colmap_pvs.average_weights import AverageWeightsConfig, average_weights, config_path
 from colmap_pvs.errors import CheckpointError, ConfigError
-from colmap_pvs.evaluate import file_sha256
+from colmap_pvs.io.files import file_sha256
 from colmap_pvs.model import load_checkpoint
 
 

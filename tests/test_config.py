@@ -114,7 +114,7 @@ def test_atomic_outputs_are_not_private(tmp_path):
     import os
     import stat
 
-    from colmap_pvs.config import atomic_write_bytes, make_temp_dir
+    from colmap_pvs.io.files import atomic_write_bytes, make_temp_dir
 
     mask = os.umask(0o022)
     try:

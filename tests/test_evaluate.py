@@ -22,7 +22,6 @@ from colmap_pvs.evaluate import (
     evaluate_depth,
     find_gt_depth,
     read_gt_depth,
-    resize_nearest,
     thin_structure_mask,
 )
 
@@ -89,20 +88,6 @@ def test_max_gt_depth_and_median_scale_alignment():
     s = compute_depth_metrics(gt * 0.5, gt, REL, ABS, max_gt_depth=5.0, scale_alignment="median")
     assert s.num_gt == 3 and s.scale == pytest.approx(2.0)
     assert s.mae == pytest.approx(0.0, abs=1e-12)
-
-
-def test_resize_nearest_uses_pixel_centres():
-    a = np.arange(3)[None, :].repeat(2, 0)  # columns 0 1 2
-    out = resize_nearest(a, 2, 2)
-    # output centres 0.5, 1.5 -> input coordinates 0.75, 2.25 -> columns 0 and 2
-    assert out[0].tolist() == [0, 2]
-    # 2x downsampling picks the lower-right pixel of each 2x2 block (centre 1.0 -> index 1)
-    big = np.arange(16).reshape(4, 4)
-    assert resize_nearest(big, 2, 2).tolist() == [[5, 7], [13, 15]]
-    # upsampling repeats each pixel, never blends
-    assert resize_nearest(np.array([[1.0, 2.0]]), 1, 4).tolist() == [[1.0, 1.0, 2.0, 2.0]]
-    with pytest.raises(ShapeError, match=r"\(2, 2, 3\)"):
-        resize_nearest(np.zeros((2, 2, 3)), 1, 1)
 
 
 def test_gt_of_another_size_is_resized_with_nearest():

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-import colmap_pvs.config
+import colmap_pvs.io.files
 from colmap_pvs.errors import ConfigError, MapFormatError, ShapeError
 from colmap_pvs.io import (
     colorize_depth,
@@ -146,7 +146,7 @@ def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
     def failing_replace(src, dst):
         raise OSError("disk full (simulated)")
 
-    monkeypatch.setattr(colmap_pvs.config.os, "replace", failing_replace)
+    monkeypatch.setattr(colmap_pvs.io.files.os, "replace", failing_replace)
     with pytest.raises(OSError, match="simulated"):
         write_depth_map(path, old * 3)
     monkeypatch.undo()

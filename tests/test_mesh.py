@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -101,3 +102,20 @@ def test_bad_input_and_config(tmp_path):
     tiny = write_point_cloud(tmp_path / "tiny.ply", np.zeros((2, 3)))
     with pytest.raises(MapFormatError, match="2 points"):
         mesh(MeshConfig(input_path=tiny))
+
+
+@pytest.mark.parametrize("method", ["open3d", "colmap"])
+def test_meshing_logs_each_long_step_before_it_runs(tmp_path, caplog, method):
+    """Issue 41 item 7: meshing took ~49 s in silence; each long step now opens with an INFO line."""
+    cloud = _sphere_cloud(tmp_path / "sphere.ply", n=2000)
+    with caplog.at_level("INFO", logger="colmap_pvs"):
+        mesh(MeshConfig(input_path=cloud, output_path=tmp_path / "m.ply", depth=5, num_threads=1,
+                        method=method))
+    messages = [r.getMessage() for r in caplog.records if r.levelname == "INFO"]
+    poisson = next(i for i, m in enumerate(messages)
+                   if re.search(r"meshing: .*Poisson reconstruction at depth 5 .*of 2,000 points \.\.\.", m))
+    wrote = next(i for i, m in enumerate(messages) if m.startswith("mesh: wrote"))
+    assert poisson < wrote
+    if method == "open3d":
+        trimming = next(i for i, m in enumerate(messages) if m.startswith("meshing: trimming"))
+        assert poisson < trimming < wrote

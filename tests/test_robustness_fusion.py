@@ -61,19 +61,19 @@ def test_kill_between_the_renames_never_leaves_a_mismatched_pair(workspace, meth
 
 
 def test_disk_full_while_writing_the_vis_keeps_the_old_pair(workspace, monkeypatch):
-    import colmap_pvs.config as config_module
+    import colmap_pvs.io.files as files_module
 
     fuse(FuseConfig(workspace_path=workspace))
     ply, vis = _pair(workspace)
     before = (ply.read_bytes(), vis.read_bytes())
-    real = config_module.tempfile.mkstemp
+    real = files_module.tempfile.mkstemp
 
     def full(*args, **kwargs):
         if kwargs.get("prefix", "").startswith(".fused.ply.vis."):
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(config_module.tempfile, "mkstemp", full)
+    monkeypatch.setattr(files_module.tempfile, "mkstemp", full)
     with pytest.raises(OutputError, match="fused.ply.vis.*No space left"):
         fuse(FuseConfig(workspace_path=workspace, min_consistent_views=1))
     assert (ply.read_bytes(), vis.read_bytes()) == before

@@ -173,3 +173,68 @@ def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_pa
     assert all(lo > hi for lo, hi in zip(low, high, strict=True)), (low, high)
     with pytest.raises(ConfigError, match="sift_peak_threshold"):
         reconstruct_config(image_path=images, workspace_path=tmp_path / "x", sift_peak_threshold=0.0)
+
+
+def test_unreadable_photo_is_skipped_by_name_before_sfm(tmp_path, caplog):
+    """Issue 41 item 3: a text file named like a photo is named in a WARNING and skipped before SfM,
+    not left to COLMAP (which failed to read it and reported it as "not registered")."""
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur((rng.random((400, 500)) * 255).astype(np.uint8), (0, 0), 3)
+    images = tmp_path / "photos"
+    images.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
+    (images / "IMG_0001.jpg").write_text("not a photo, just some notes\n")
+    with caplog.at_level("INFO", logger="colmap_pvs"):
+        result = reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out",
+                                               num_threads=1, stop_after="features"))
+    assert result.num_images == 2
+    assert list(result.skipped_photos) == ["IMG_0001.jpg"]
+    assert "not a readable image" in result.skipped_photos["IMG_0001.jpg"]
+    messages = [(r.levelname, r.getMessage()) for r in caplog.records]
+    warning = next(i for i, (level, msg) in enumerate(messages)
+                   if level == "WARNING" and "skipping IMG_0001.jpg: not a readable image" in msg)
+    features = next(i for i, (_, msg) in enumerate(messages) if "features ..." in msg)
+    assert warning < features  # reported before SfM starts
+    import sqlite3
+
+    with sqlite3.connect(tmp_path / "out" / "database.db") as db:
+        assert sorted(r[0] for r in db.execute("SELECT name FROM images")) == ["0.png", "1.png"]
+
+
+def test_summary_names_the_real_dense_workspace_and_previews_folder(tmp_path):
+    """Issue 41 item 3: the closing summary names the dense workspace and the previews folder (on by
+    default) instead of ``None`` / "run with --previews true", also when the run stopped before them."""
+    from colmap_pvs.cli.reports_pipeline import report_reconstruct
+    from colmap_pvs.reconstruct import ReconstructResult
+
+    dense = tmp_path / "ws" / "dense"
+    previews = dense / "stereo" / "previews"
+    stopped = ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense, previews_path=previews,
+                                num_images=21, num_registered=20, stopped_after="mapping",
+                                skipped_photos={"IMG_0001.jpg": "not a readable image"})
+    text = report_reconstruct(stopped)
+    assert f"dense workspace: {dense}  (not made yet; the run stopped after mapping)" in text
+    assert f"previews:        {previews}  (none yet: stereo has not run" in text
+    assert "skipped photo IMG_0001.jpg: not a readable image" in text
+    assert "None" not in text.split("where to look:")[1].split("fused cloud")[0]
+    previews.mkdir(parents=True)
+    (previews / "a.png.geometric.depth.png").write_bytes(b"")
+    done = ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense, previews_path=previews)
+    text = report_reconstruct(done)
+    assert f"dense workspace: {dense}\n" in text and f"previews:        {previews}  (1 depth maps" in text
+    assert "(off; run with --previews true)" in report_reconstruct(
+        ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense))
+
+
+def test_reconstruct_result_paths_are_set_before_the_stages(tmp_path, analytic_scene):
+    """The dense workspace and previews folder of the summary come from the run's layout (previews are
+    on by default), even for a run stopped before stereo."""
+    images = tmp_path / "photos"
+    shutil.copytree(analytic_scene["root"] / "images", images)
+    config = reconstruct_config(image_path=images, workspace_path=tmp_path / "out",
+                               input_path=analytic_scene["root"] / "sparse", stop_after="mapping")
+    result = reconstruct(config)
+    assert result.dense_path == tmp_path / "out" / "dense"
+    assert result.previews_path == tmp_path / "out" / "dense" / "stereo" / "previews"
+    assert result.stopped_after == "mapping"

@@ -12,9 +12,9 @@ import test_stereo
 from scenes import stereo_config
 
 from colmap_pvs.cli.main import main
-from colmap_pvs.config import atomic_write_bytes, host_tag
 from colmap_pvs.errors import OutputError, WorkspaceError
 from colmap_pvs.io.cleanup import remove_orphan_temps
+from colmap_pvs.io.files import atomic_write_bytes, host_tag
 from colmap_pvs.io.workspace import read_patch_match_cfg
 from colmap_pvs.stereo import run_stereo
 
@@ -87,7 +87,7 @@ def test_all_skipped_is_an_error_and_keeps_fusion_cfg(synthetic_ws, tmp_path, ti
 def test_write_errors_are_one_line_and_leave_nothing(tmp_path, monkeypatch):
     import errno
 
-    import colmap_pvs.config as config_module
+    import colmap_pvs.io.files as files_module
 
     real_fdopen = os.fdopen
 
@@ -104,7 +104,7 @@ def test_write_errors_are_one_line_and_leave_nothing(tmp_path, monkeypatch):
         def write(self, data):
             raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(config_module.os, "fdopen", Full)
+    monkeypatch.setattr(files_module.os, "fdopen", Full)
     target = tmp_path / "out" / "x.bin"
     with pytest.raises(OutputError, match=r"x\.bin.*No space left on device"):
         atomic_write_bytes(target, b"data")
@@ -114,7 +114,7 @@ def test_write_errors_are_one_line_and_leave_nothing(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "ro"))
 
-    monkeypatch.setattr(config_module.tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(files_module.tempfile, "mkstemp", refuse)
     with pytest.raises(OutputError, match=r"ro.*Permission denied"):
         atomic_write_bytes(tmp_path / "ro" / "y.bin", b"data")
 
@@ -123,17 +123,17 @@ def test_disk_full_during_stereo_is_one_line_and_no_map_is_done(synthetic_ws, tm
                                                                  monkeypatch, capsys):
     import errno
 
-    import colmap_pvs.config as config_module
+    import colmap_pvs.io.files as files_module
 
     ws = _copy(synthetic_ws, tmp_path)
-    real = config_module.tempfile.mkstemp
+    real = files_module.tempfile.mkstemp
 
     def full(*args, **kwargs):
         if ".photometric.bin." in kwargs.get("prefix", ""):
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(config_module.tempfile, "mkstemp", full)
+    monkeypatch.setattr(files_module.tempfile, "mkstemp", full)
     args = ["stereo", "--workspace_path", str(ws), "--checkpoint", str(tiny_checkpoint),
             "--max_image_size", "32"]
     assert main(args) == 1

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from colmap_pvs.errors import ShapeError
-from colmap_pvs.upsampling import guided_upsample_depth, resize_bilinear
+from colmap_pvs.upsampling import guided_upsample_depth, resize_bilinear, resize_nearest
 
 
 def _step_guide(height: int, width: int, edge_col: int) -> np.ndarray:
@@ -66,3 +66,17 @@ def test_sample_depth_down_takes_the_network_pixel_on_the_same_ray():
     assert set(np.unique(out)) <= set(np.unique(net))
     with pytest.raises(ShapeError):
         sample_depth_down(net[None], 6, 9)
+
+
+def test_resize_nearest_uses_pixel_centres():
+    a = np.arange(3)[None, :].repeat(2, 0)  # columns 0 1 2
+    out = resize_nearest(a, 2, 2)
+    # output centres 0.5, 1.5 -> input coordinates 0.75, 2.25 -> columns 0 and 2
+    assert out[0].tolist() == [0, 2]
+    # 2x downsampling picks the lower-right pixel of each 2x2 block (centre 1.0 -> index 1)
+    big = np.arange(16).reshape(4, 4)
+    assert resize_nearest(big, 2, 2).tolist() == [[5, 7], [13, 15]]
+    # upsampling repeats each pixel, never blends
+    assert resize_nearest(np.array([[1.0, 2.0]]), 1, 4).tolist() == [[1.0, 1.0, 2.0, 2.0]]
+    with pytest.raises(ShapeError, match=r"\(2, 2, 3\)"):
+        resize_nearest(np.zeros((2, 2, 3)), 1, 1)

@@ -1,7 +1,7 @@
 """Removing the temporary files and folders that a killed run left behind.
 
 Every temporary output of colmap-pvs is named ``.NAME.pvs-HOST-PID.XXXXXXXX.tmp``
-(:func:`colmap_pvs.config.temp_tag`: ``HOST`` a hash of the host name, ``PID`` the writing
+(:func:`colmap_pvs.io.files.temp_tag`: ``HOST`` a hash of the host name, ``PID`` the writing
 process). One is an *orphan*, and is removed, when its process no longer runs on this host, or when
 it is older than ``max_age_s`` (a process on another host sharing the folder, e.g. a Ray worker,
 is never interrupted: its files are only removed once they are that old). Untagged temporaries of
@@ -18,7 +18,7 @@ import shutil
 import time
 from pathlib import Path
 
-from ..config import host_tag
+from .files import host_tag
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from ..errors import ShapeError, WorkspaceError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["check_image_file", "load_image", "read_image_size", "resize_image"]
+__all__ = ["check_image_file", "check_image_format", "load_image", "read_image_size", "resize_image"]
 
 _READ_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
 
@@ -65,6 +65,19 @@ def check_image_file(path: str | os.PathLike) -> None:
     # The head and the last 4 KiB are all that the end-marker check looks at.
     data = head + tail if size <= 4096 + len(head) else head + b"\0" + tail
     _check_image_bytes(data, path)
+
+
+def check_image_format(path: str | os.PathLike) -> None:
+    """Cheap check (the file's signature only, nothing is decoded) that ``path`` holds an image format
+    a decoder recognises: a text file or a document named ``IMG_0001.jpg`` does not.
+
+    Raises:
+        WorkspaceError: no image decoder recognises the file's content.
+    """
+    if not cv2.haveImageReader(str(path)):
+        raise WorkspaceError(
+            f"image file {str(path)!r} is not a readable image (no image decoder recognises its content)"
+        )
 
 
 def load_image(path: str | os.PathLike) -> np.ndarray:

@@ -59,8 +59,10 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import config_to_dict, make_temp_dir, save_config
+from ..config import config_to_dict, save_config
 from ..errors import ConfigError, WorkspaceError
+from .features import extract_features, match_features, resolve_matcher
+from .files import make_temp_dir
 from .images import read_image_size
 
 logger = logging.getLogger(__name__)
@@ -471,42 +473,32 @@ def import_poses(config: ImportPosesConfig) -> Path:
         p.unlink(missing_ok=True)
 
     t0 = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = config.num_threads
-    extraction.max_image_size = config.feature_max_image_size
-    extraction.sift.max_num_features = config.max_num_features
-    extraction.sift.peak_threshold = config.sift_peak_threshold
     groups = _camera_groups(cams, sizes)
     for group in groups:
         K = group[0].K
-        reader = pycolmap.ImageReaderOptions(
+        extract_features(
+            db_path,
+            image_dir,
+            [c.name for c in group],
             camera_model="PINHOLE",
-            camera_params=",".join(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])),
-        )
-        pycolmap.extract_features(
-            str(db_path),
-            str(image_dir),
-            image_names=[c.name for c in group],
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
+            camera_params=(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+            single_camera=True,
+            num_threads=config.num_threads,
+            max_image_size=config.feature_max_image_size,
+            max_num_features=config.max_num_features,
+            peak_threshold=config.sift_peak_threshold,
         )
     t1 = time.perf_counter()
     logger.info("import-poses: SIFT on %d images (%d camera(s)) in %.1f s", len(cams), len(groups), t1 - t0)
 
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = config.num_threads
-    matcher = (
-        config.matcher if config.matcher != "auto" else ("exhaustive" if len(cams) <= 50 else "sequential")
+    matcher = resolve_matcher(config.matcher, len(cams), 50)
+    match_features(
+        db_path,
+        matcher,
+        num_images=len(cams),
+        num_threads=config.num_threads,
+        sequential_overlap=config.sequential_overlap,
     )
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(str(db_path), matching_options=matching, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions(overlap=config.sequential_overlap)
-        pycolmap.match_sequential(
-            str(db_path), matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
-        )
     t2 = time.perf_counter()
     logger.info("import-poses: %s matching in %.1f s", matcher, t2 - t1)
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import atomic_write_bytes
 from ..errors import ConfigError, MapFormatError, ShapeError
+from .files import atomic_write_bytes
 
 logger = logging.getLogger(__name__)
 

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import atomic_write_bytes, write_temp_file
 from ..errors import MapFormatError, OutputError, ShapeError
+from .files import atomic_write_bytes, write_temp_file
 
 logger = logging.getLogger(__name__)
 

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..config import make_temp_dir
 from ..errors import UnsupportedCameraError, WorkspaceError
 from ..types import PINHOLE_MODELS, Camera, Image, Points3D, SparseModel
+from .files import make_temp_dir
 
 logger = logging.getLogger(__name__)
 

@@ -28,9 +28,9 @@ from typing import Literal
 
 import pycolmap
 
-from ..config import atomic_write_bytes, make_temp_dir
 from ..errors import ConfigError, WorkspaceError
 from ..types import SparseModel
+from .files import atomic_write_bytes, make_temp_dir
 from .images import check_image_file, read_image_size
 from .sparse import find_model_files, read_sparse_model, replace_directory
 

@@ -10,8 +10,9 @@ from typing import Any
 
 import torch
 
-from ..config import atomic_write_bytes, config_from_dict, config_to_dict
+from ..config import config_from_dict, config_to_dict
 from ..errors import CheckpointError, ConfigError
+from ..io.files import atomic_write_bytes
 from .config import PVSNetConfig
 from .pvsnet import PVSNet
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from ..config import replace_config
-from ..evaluate import file_sha256
+from ..io.files import file_sha256
 from ..io.workspace import Workspace
 from .config import FORMAT_VERSIONS, StereoConfig, pass_settings
 from .network import load_stereo_model

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from ..errors import WorkspaceError
-from ..evaluate import file_sha256
 from ..geometry import sparse_depth_map
+from ..io.files import file_sha256
 from ..io.images import load_image, resize_image
 from ..io.maps import fusion_intrinsics
 from ..io.workspace import Workspace, load_workspace, read_patch_match_cfg

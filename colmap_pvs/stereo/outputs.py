@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import atomic_write_bytes, config_to_dict
+from ..config import config_to_dict
 from ..errors import MapFormatError
+from ..io.files import atomic_write_bytes
 from ..io.maps import (
     read_array,
     read_depth_map,

@@ -15,12 +15,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ShapeError
-from ..evaluate import resize_nearest
 from ..geometry import to_homogeneous
 from ..model.runtime import check_memory_budget
 from ..normals import depth_to_normals
 from ..prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
-from ..upsampling import guided_upsample_depth, resize_area, resize_bilinear, sample_depth_down
+from ..upsampling import (
+    guided_upsample_depth,
+    resize_area,
+    resize_bilinear,
+    resize_nearest,
+    sample_depth_down,
+)
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
 from .outputs import fingerprint, is_current, photometric_settings, write_pass

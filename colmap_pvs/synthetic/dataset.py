@@ -39,9 +39,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ..config import atomic_write_bytes, config_to_dict
+from ..config import config_to_dict
 from ..errors import ConfigError
 from ..geometry import sparse_depth_map
+from ..io.files import atomic_write_bytes
 from ..types import SparseModel
 from ..views import (
     ViewSelectionConfig,

@@ -30,8 +30,9 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..config import atomic_write_bytes, config_to_dict, make_temp_dir, replace_config
+from ..config import config_to_dict, replace_config
 from ..errors import ConfigError, WorkspaceError
+from ..io.files import atomic_write_bytes, make_temp_dir
 from .cameras import CameraConfig
 from .dataset import render_scene
 from .render import RenderConfig

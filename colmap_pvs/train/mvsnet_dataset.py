@@ -99,9 +99,9 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from ..config import atomic_write_bytes
 from ..errors import ColmapPVSError, ConfigError, WorkspaceError
 from ..geometry import scale_intrinsics
+from ..io.files import atomic_write_bytes
 from ..io.images import load_image
 from ..views import best_and_worst
 from .losses import downsample_depth

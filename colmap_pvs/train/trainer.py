@@ -56,8 +56,9 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
-from ..config import atomic_write_bytes, config_from_dict, config_to_dict, replace_config, save_config
+from ..config import config_from_dict, config_to_dict, replace_config, save_config
 from ..errors import CheckpointError, ColmapPVSError, ConfigError
+from ..io.files import atomic_write_bytes
 from ..model import PVSNet, load_checkpoint, save_checkpoint
 from .config import RESUMABLE_CHANGES, TrainConfig
 from .losses import depth_loss, output_metrics
