@@ -35,8 +35,7 @@ from pathlib import Path
 
 from .config import config_to_dict
 from .errors import ConfigError
-from .io.files import file_sha256
-from .io.files import atomic_write_bytes
+from .io.files import atomic_write_bytes, file_sha256
 
 logger = logging.getLogger(__name__)
 
