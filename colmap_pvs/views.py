@@ -978,7 +978,9 @@ def run_select_views(config: SelectViewsConfig) -> ViewSelection:
     """Select source views and depth ranges for every image of a workspace.
 
     Writes ``stereo/patch-match.cfg`` (COLMAP's format: the reference name on one line,
-    its comma-separated sources on the next) for the images that were not skipped.
+    its comma-separated sources on the next) for the images that were not skipped. A
+    ``patch-match.cfg`` that colmap-pvs did not write (``image_undistorter``'s ``__auto__, 20``, or a
+    hand-made one) is kept as ``stereo/patch-match.cfg.bak`` first, with a warning.
     """
     from .io.workspace import load_workspace, write_patch_match_cfg
 
