@@ -278,7 +278,7 @@ def read_sparse_model(
     if warn_distortion and distorted:  # one line, not one per camera (issue 41); each camera at DEBUG
         n = sum(c.model not in PINHOLE_MODELS for c in cameras.values())
         logger.warning(
-            "%d of %d camera(s) in %s have lens distortion (%s), which is ignored",
+            "%d of %d camera(s) in %s are %s; their distortion is ignored",
             n, len(cameras), path, ", ".join(distorted),
         )
     points = _convert_points(rec, set(registered), path)
