@@ -611,7 +611,16 @@ def fuse(config: FuseConfig) -> FuseResult:
             names.append(n)
         else:
             result.skipped[n] = f"no {config.input_type} depth/normal map"
-            logger.warning("fusion: skipping %s: no %s depth/normal map", n, config.input_type)
+            logger.debug("fusion: skipping %s: no %s depth/normal map", n, config.input_type)
+    if result.skipped:  # one line, not one per image (issue 41)
+        missing = list(result.skipped)
+        shown = ", ".join(repr(n) for n in missing[:3]) + (
+            f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        )
+        logger.warning(
+            "fusion: skipping %d of %d listed image(s) without %s depth/normal maps: %s",
+            len(missing), len(listed), config.input_type, shown,
+        )
     if not names:
         raise WorkspaceError(
             f"no {config.input_type} depth and normal maps to fuse in {str(ws.stereo_dir)!r}; "

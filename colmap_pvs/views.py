@@ -545,7 +545,7 @@ def compute_depth_range(
 ) -> tuple[float, float] | None:
     """Robust depth range ``(dmin, dmax)`` of ``image`` from the sparse points it observes.
 
-    First, far outliers are set aside (a warning names how many): with ``z`` the positive
+    First, far outliers are set aside (a DEBUG message names how many): with ``z`` the positive
     camera-frame depths of the observed points, ``med`` the median of ``log z`` and
     ``sigma = 1.4826 * median(|log z - med|)``, a point is an outlier when
     ``|log z - med| > max(depth_outlier_sigmas * sigma, log(depth_outlier_min_factor))`` -- unless
@@ -570,8 +570,8 @@ def compute_depth_range(
         )
         return None
     depth_range, note = _robust_depth_range(depths, config, repr(image.name))
-    if note is not None:
-        logger.warning("image %s", note)
+    if note is not None:  # harmless and expected (SfM noise): a detail, not a warning (issue 41)
+        logger.debug("image %s", note)
     return depth_range
 
 
@@ -740,12 +740,44 @@ class ViewSelection:
         return ref.source_names if ref is not None else ()
 
 
+def _names_preview(names: Sequence[str], limit: int = 3) -> str:
+    shown = ", ".join(repr(n) for n in names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def _log_selection_summary(
+    n_images: int, skipped: Sequence[SkippedImage], few_sources: Sequence[str], n_sources: int,
+    n_outliers: int,
+) -> None:
+    """One short line per kind of per-image note of :func:`select_views` (issue 41: the details of
+    each image are at DEBUG, which ``--log_level DEBUG`` shows)."""
+    if skipped:  # the user may want to act: these images get no depth map
+        logger.warning(
+            "view selection skips %d of %d image(s), which get no depth map (too few sparse points or no "
+            "overlapping view): %s",
+            len(skipped), n_images, _names_preview([s.name for s in skipped]),
+        )
+    if few_sources:
+        logger.info(
+            "%d of %d image(s) have fewer than num_views-1=%d candidate sources (details: --log_level DEBUG)",
+            len(few_sources), n_images, n_sources,
+        )
+    if n_outliers:  # harmless and expected: SfM noise
+        logger.info(
+            "depth ranges of %d of %d image(s) leave out a few far outlier sparse points "
+            "(details: --log_level DEBUG)",
+            n_outliers, n_images,
+        )
+
+
 def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) -> ViewSelection:
     """Select sources and a depth range for every registered image.
 
-    An image is skipped (warning, never an exception) when it observes fewer than
+    An image is skipped (never an exception) when it observes fewer than
     ``config.min_points`` sparse points in front of it, or when no other image is a
     candidate source (score ``> 0`` and at least ``config.min_shared_points`` shared points).
+    Each kind of per-image note (skipped, few candidate sources, depth outliers left out) is logged
+    as one summary line; the per-image details are at DEBUG.
     """
     config = config or ViewSelectionConfig()
     stats, obs = _pair_statistics(model, config)
@@ -758,6 +790,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
     references: dict[str, ReferenceViews] = {}
     skipped: list[SkippedImage] = []
     outlier_notes: list[str] = []
+    few_sources: list[str] = []
     for k, image_id in enumerate(stats.image_ids):
         image = model.images[int(image_id)]
         depths = _observed_depths(model, image, order)
@@ -766,7 +799,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
                 f"{depths.shape[0]} sparse point(s) in front of the camera, fewer than "
                 f"min_points={config.min_points}"
             )
-            logger.warning("skipping image %r: %s", image.name, reason)
+            logger.debug("skipping image %r: %s", image.name, reason)
             skipped.append(SkippedImage(image.name, int(image_id), int(depths.shape[0]), reason))
             continue
         row = stats.scores[k].copy()
@@ -774,11 +807,12 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
         ranked = rank_sources(row, stats.shared_points[k], config.min_shared_points)
         if ranked.shape[0] == 0:
             reason = f"no other image shares >= min_shared_points={config.min_shared_points} sparse points"
-            logger.warning("skipping image %r: %s", image.name, reason)
+            logger.debug("skipping image %r: %s", image.name, reason)
             skipped.append(SkippedImage(image.name, int(image_id), int(depths.shape[0]), reason))
             continue
         if ranked.shape[0] < n_sources:
-            logger.info(
+            few_sources.append(image.name)
+            logger.debug(
                 "image %r has only %d candidate source(s) (num_views-1=%d)",
                 image.name,
                 ranked.shape[0],
@@ -801,7 +835,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
         depth_range, note = _robust_depth_range(depths, config, repr(image.name))
         if note is not None:
             outlier_notes.append(note)
-            logger.info("image %s", note)
+            logger.debug("image %s", note)
         references[image.name] = ReferenceViews(
             name=image.name,
             image_id=int(image_id),
@@ -812,11 +846,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
             ranked_names=ranked_names,
             ranked_scores=ranked_scores,
         )
-    if outlier_notes:
-        logger.warning(
-            "depth ranges of %d image(s) ignore far outlier sparse points (details at INFO), e.g. %s",
-            len(outlier_notes), outlier_notes[0],
-        )
+    _log_selection_summary(len(names), skipped, few_sources, n_sources, len(outlier_notes))
     return ViewSelection(
         names=names,
         image_ids=stats.image_ids,
@@ -978,7 +1008,9 @@ def run_select_views(config: SelectViewsConfig) -> ViewSelection:
     """Select source views and depth ranges for every image of a workspace.
 
     Writes ``stereo/patch-match.cfg`` (COLMAP's format: the reference name on one line,
-    its comma-separated sources on the next) for the images that were not skipped.
+    its comma-separated sources on the next) for the images that were not skipped. A
+    ``patch-match.cfg`` that colmap-pvs did not write (``image_undistorter``'s ``__auto__, 20``, or a
+    hand-made one) is kept as ``stereo/patch-match.cfg.bak`` first, with a warning.
     """
     from .io.workspace import load_workspace, write_patch_match_cfg
 

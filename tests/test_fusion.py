@@ -191,6 +191,19 @@ def test_missing_maps(workspace, analytic_scene):
         fuse(FuseConfig(workspace_path=workspace))
 
 
+def test_missing_maps_are_one_warning(workspace, analytic_scene, caplog):
+    """Issue 41 item 7: images listed without maps give one WARNING naming them, not one each."""
+    names = analytic_scene["names"][:2]
+    for name in names:
+        (workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").unlink()
+    with caplog.at_level("WARNING", logger="colmap_pvs.fusion"):
+        result = fuse(FuseConfig(workspace_path=workspace))
+    assert sorted(result.skipped) == sorted(names)
+    assert len(caplog.records) == 1
+    message = caplog.records[0].getMessage()
+    assert "skipping 2 of 5 listed image(s)" in message and all(repr(n) in message for n in names)
+
+
 # --------------------------------------------------------------------------- COLMAP method / options
 
 

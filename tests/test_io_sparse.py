@@ -175,3 +175,25 @@ def test_distorted_camera_is_refused(analytic_scene: dict, tmp_path: Path) -> No
     model = read_sparse_model(out, require_pinhole=False)
     assert model.cameras[1].model == "SIMPLE_RADIAL"
     np.testing.assert_allclose(model.cameras[1].params[-1], 0.05)  # distortion kept, not dropped
+
+
+def test_distorted_cameras_are_one_warning(
+    analytic_scene: dict, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 41 item 7: one camera per image (COLMAP without single_camera) gives one summary
+    WARNING for all distorted cameras, each camera only at DEBUG."""
+    import dataclasses
+
+    model = _distorted_model(analytic_scene["model"])
+    radial = model.cameras[1]
+    cameras = {i: dataclasses.replace(radial, camera_id=i) for i in model.images}
+    images = {i: dataclasses.replace(im, camera_id=i) for i, im in model.images.items()}
+    out = write_sparse_model(
+        SparseModel(cameras, images, model.points, model.image_ids_by_name), tmp_path / "radial"
+    )
+    with caplog.at_level("DEBUG", logger="colmap_pvs.io.sparse"):
+        read_sparse_model(out, require_pinhole=False)
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    n = len(images)
+    assert len(warnings) == 1 and f"{n} of {n} camera(s)" in warnings[0].getMessage()
+    assert len([r for r in caplog.records if r.levelname == "DEBUG" and "distortion" in r.getMessage()]) == n

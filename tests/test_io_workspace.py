@@ -29,6 +29,7 @@ from colmap_pvs.io import (
     write_patch_match_cfg,
     write_sparse_model,
 )
+from colmap_pvs.io.workspace import CFG_RECORD
 from colmap_pvs.types import Camera, SparseModel
 
 
@@ -254,6 +255,81 @@ def test_cfg_write_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="own source"):
         write_patch_match_cfg(tmp_path / "p.cfg", {"a.jpg": ["a.jpg"]})
     assert list(tmp_path.iterdir()) == []
+
+
+
+@pytest.mark.parametrize(
+    ("write", "user_text", "ours", "ours_text", "other"),
+    [
+        (write_fusion_cfg, "a.jpg\nb.jpg\nc.jpg\n", ["a.jpg", "b.jpg"], "a.jpg\nb.jpg\n", ["a.jpg"]),
+        (
+            write_patch_match_cfg,
+            "a.jpg\n__auto__, 20\nb.jpg\n__auto__, 20\n",
+            {"a.jpg": ["b.jpg"]},
+            "a.jpg\nb.jpg\n",
+            {"b.jpg": ["a.jpg"]},
+        ),
+    ],
+)
+def test_cfg_writers_keep_the_users_file(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, write, user_text, ours, ours_text, other
+) -> None:
+    """Issue 41 item 6: a .cfg COLMAP or the user wrote is kept beside it (``NAME.bak``) with a
+    warning naming it; our own file is replaced silently; identical content is not rewritten."""
+    name = "fusion.cfg" if write is write_fusion_cfg else "patch-match.cfg"
+    stereo = tmp_path / "stereo"
+    stereo.mkdir()
+    path = stereo / name
+    path.write_text(user_text)  # image_undistorter's (or a hand-made) file
+    with caplog.at_level("INFO"):
+        write(path, ours)
+    assert path.read_text() == ours_text
+    backup = stereo / f"{name}.bak"
+    assert backup.read_text() == user_text
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and str(backup) in warnings[0].getMessage()
+    # a rerun replaces our own file without a backup or a warning
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        write(path, other)
+        inode = path.stat().st_ino
+        write(path, other)  # identical content: a no-op
+    assert path.stat().st_ino == inode
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert sorted(p.name for p in stereo.iterdir()) == sorted([name, f"{name}.bak", CFG_RECORD])
+    # the user edits it again: a second backup, the first one untouched
+    path.write_text(user_text.replace("a.jpg", "z.jpg"))
+    write(path, ours)
+    assert backup.read_text() == user_text
+    assert (stereo / f"{name}.bak.2").read_text() == user_text.replace("a.jpg", "z.jpg")
+    # the user's original content again: its backup exists already, no third copy
+    path.write_text(user_text)
+    write(path, other)
+    assert not (stereo / f"{name}.bak.3").exists()
+    assert backup.read_text() == user_text
+
+
+def test_select_views_keeps_image_undistorters_patch_match_cfg(
+    workspace_copy: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``select-views`` on a workspace whose patch-match.cfg image_undistorter wrote: kept as .bak."""
+    from colmap_pvs.views import SelectViewsConfig, run_select_views
+
+    ws = load_workspace(workspace_copy)[0]
+    names = sorted(read_fusion_cfg(ws.fusion_cfg))
+    original = "".join(f"{n}\n__auto__, 20\n" for n in names)
+    ws.patch_match_cfg.write_text(original)
+    (ws.stereo_dir / CFG_RECORD).unlink(missing_ok=True)
+    with caplog.at_level("WARNING"):
+        run_select_views(SelectViewsConfig(workspace_path=workspace_copy, num_views=3))
+    assert (ws.stereo_dir / "patch-match.cfg.bak").read_text() == original
+    assert all(s.mode == "explicit" for s in read_patch_match_cfg(ws.patch_match_cfg).values())
+    assert any("patch-match.cfg.bak" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        run_select_views(SelectViewsConfig(workspace_path=workspace_copy, num_views=4))
+    assert not any("patch-match.cfg" in r.getMessage() for r in caplog.records)
+    assert not (ws.stereo_dir / "patch-match.cfg.bak.2").exists()
 
 
 # --------------------------------------------------------------------------- real data

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 from test_views import make_model
@@ -29,17 +31,33 @@ def _scene(n_inliers: int, outliers: int, factor: float, seed: int = 0):
 )
 def test_far_outliers_do_not_widen_the_depth_range(n_inliers, outliers, factor, caplog):
     model = _scene(n_inliers, outliers, factor)
-    with caplog.at_level("WARNING"):
+    with caplog.at_level("DEBUG", logger="colmap_pvs.views"):
         dmin, dmax = compute_depth_range(model, model.images[1])
     assert 4.0 * 0.75 * 0.98 <= dmin <= 4.2 * 0.75 and 6.8 * 1.25 <= dmax <= 7.0 * 1.25 * 1.02
     assert "outlier" in caplog.text and f"{outliers} of {n_inliers + outliers}" in caplog.text
+    assert all(r.levelname == "DEBUG" for r in caplog.records)  # harmless: a detail (issue 41)
     # select_views uses the same rule, and says so once
     caplog.clear()
-    with caplog.at_level("WARNING"):
+    with caplog.at_level("INFO"):
         sel = select_views(model)
     assert sel.references["img_001.jpg"].depth_range == pytest.approx((dmin, dmax))
-    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "outlier" in r.getMessage()]
-    assert len(warnings) == 1
+    summary = [r for r in caplog.records if "outlier" in r.getMessage()]
+    assert len(summary) == 1 and summary[0].levelname == "INFO"
+
+
+def test_outlier_notes_are_one_short_summary_with_details_at_debug(caplog):
+    """Issue 41 item 7: one short INFO line for all images whose depth range left out outliers, no
+    WARNING, and the per-image counts only at DEBUG."""
+    model = _scene(297, 5, 1e6)  # all three images see the far points
+    with caplog.at_level("DEBUG", logger="colmap_pvs.views"):
+        select_views(model)
+    records = [r for r in caplog.records if "outlier" in r.getMessage()]
+    above = [r for r in records if r.levelno > logging.DEBUG]
+    assert len(above) == 1 and above[0].levelname == "INFO"
+    assert len(above[0].getMessage()) < 150 and "3 of 3 image(s)" in above[0].getMessage()
+    details = [r for r in records if r.levelno == logging.DEBUG]
+    assert len(details) == 3 and "5 of 302 sparse points" in details[0].getMessage()
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 def test_structure_is_not_an_outlier():

@@ -265,6 +265,11 @@ def test_too_few_points_is_skipped_with_warning(caplog):
     assert set(skipped) == {"img_003.jpg", "img_004.jpg"}
     assert skipped["img_003.jpg"].num_points == 3 and skipped["img_004.jpg"].num_points == 0
     assert "img_003.jpg" in caplog.text and "img_004.jpg" in caplog.text
+    # issue 41: one summary WARNING for the images select_views skips, not one per image
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs.views"):
+        select_views(model, cfg)
+    assert len(caplog.records) == 1 and "skips 2 of 4 image(s)" in caplog.records[0].getMessage()
     # a skipped reference is still a usable source for others
     assert "img_003.jpg" in sel.references["img_001.jpg"].ranked_names
     assert sel.sources("img_004.jpg") == ()

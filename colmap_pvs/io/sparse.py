@@ -111,7 +111,7 @@ def _convert_camera(
                 "with `colmap-pvs undistort` (or COLMAP's `colmap image_undistorter`)"
             )
         if warn_distortion:
-            logger.warning("camera %d in %s is %s; its distortion is ignored", camera.camera_id, path, model)
+            logger.debug("camera %d in %s is %s; its distortion is ignored", camera.camera_id, path, model)
     params = np.asarray(camera.params, dtype=np.float64).copy()
     return Camera(
         camera_id=int(camera.camera_id),
@@ -274,6 +274,13 @@ def read_sparse_model(
     cameras = {
         cid: _convert_camera(rec.cameras[cid], path, require_pinhole, warn_distortion) for cid in camera_ids
     }
+    distorted = sorted({c.model for c in cameras.values() if c.model not in PINHOLE_MODELS})
+    if warn_distortion and distorted:  # one line, not one per camera (issue 41); each camera at DEBUG
+        n = sum(c.model not in PINHOLE_MODELS for c in cameras.values())
+        logger.warning(
+            "%d of %d camera(s) in %s are %s; their distortion is ignored",
+            n, len(cameras), path, ", ".join(distorted),
+        )
     points = _convert_points(rec, set(registered), path)
     observed = _point_ids_per_image(points)
     images: dict[int, Image] = {}

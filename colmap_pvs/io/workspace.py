@@ -8,6 +8,9 @@ Layout (what COLMAP's ``image_undistorter`` writes, and what ``patch_match_stere
                                               warning: COLMAP's own tools only read ``sparse/``)
     root/stereo/patch-match.cfg               reference image / source images, pairs of lines
     root/stereo/fusion.cfg                    one image name per line
+    root/stereo/colmap_pvs_cfg.json           sha256 of the .cfg files colmap-pvs wrote (a .cfg
+                                              COLMAP or the user wrote is kept as NAME.cfg.bak
+                                              when colmap-pvs must replace it)
     root/stereo/depth_maps/NAME.{geometric,photometric}.bin
     root/stereo/normal_maps/NAME.{geometric,photometric}.bin
 
@@ -18,6 +21,8 @@ and ``docs/CONVENTIONS.md``.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import shutil
@@ -28,7 +33,7 @@ from typing import Literal
 
 import pycolmap
 
-from ..errors import ConfigError, WorkspaceError
+from ..errors import ConfigError, OutputError, WorkspaceError
 from ..types import SparseModel
 from .files import atomic_write_bytes, make_temp_dir
 from .images import check_image_file, read_image_size
@@ -37,6 +42,8 @@ from .sparse import find_model_files, read_sparse_model, replace_directory
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "CFG_BACKUP_SUFFIX",
+    "CFG_RECORD",
     "MAP_KINDS",
     "SourceSpec",
     "UndistortConfig",
@@ -46,6 +53,7 @@ __all__ = [
     "read_fusion_cfg",
     "read_patch_match_cfg",
     "undistort",
+    "write_cfg_keeping_user_file",
     "write_fusion_cfg",
     "write_patch_match_cfg",
 ]
@@ -384,6 +392,91 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
     return specs
 
 
+#: Beside the ``.cfg`` files colmap-pvs writes: ``{file name: sha256 of the content we wrote}``, so
+#: that a later write can tell our own file (replaced silently) from one COLMAP or the user wrote
+#: (kept as a backup). The ``.cfg`` files themselves carry no header: COLMAP's parser has no comments.
+CFG_RECORD = "colmap_pvs_cfg.json"
+#: Suffix of the backup of a replaced ``.cfg`` colmap-pvs did not write: ``fusion.cfg.bak``, then
+#: ``fusion.cfg.bak.2``, ``fusion.cfg.bak.3``, ... when an earlier backup with other content exists.
+CFG_BACKUP_SUFFIX = ".bak"
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _read_cfg_record(folder: Path) -> dict[str, str]:
+    try:
+        record = json.loads((folder / CFG_RECORD).read_text())
+    except (OSError, ValueError):
+        return {}
+    return {str(k): str(v) for k, v in record.items()} if isinstance(record, dict) else {}
+
+
+def cfg_backup_path(path: str | os.PathLike, content: bytes) -> tuple[Path, bool]:
+    """Where the backup of ``path`` holding ``content`` goes: ``(backup, already_there)``.
+
+    An existing backup with the same content is reused; one with other content is never
+    overwritten (the next free numbered name is taken instead).
+    """
+    path = Path(path)
+    number = 1
+    while True:
+        suffix = CFG_BACKUP_SUFFIX if number == 1 else f"{CFG_BACKUP_SUFFIX}.{number}"
+        backup = path.with_name(path.name + suffix)
+        if not os.path.lexists(backup):
+            return backup, False
+        try:
+            if backup.is_file() and backup.read_bytes() == content:
+                return backup, True
+        except OSError:
+            pass
+        number += 1
+
+
+def write_cfg_keeping_user_file(path: str | os.PathLike, data: bytes) -> Path:
+    """Write a COLMAP ``.cfg`` atomically without losing one that COLMAP or the user wrote.
+
+    * the file already holds ``data``: nothing is written;
+    * it holds what colmap-pvs last wrote there (its sha256 is in ``CFG_RECORD`` beside it): replaced;
+    * it holds anything else (``image_undistorter``'s file, a hand-edited one, or one of an older
+      colmap-pvs that kept no record): copied to ``NAME.bak`` first (``NAME.bak.N`` when a different
+      ``NAME.bak`` exists), with a warning naming the copy, then replaced.
+
+    The sha256 of ``data`` is recorded in ``CFG_RECORD`` so that a rerun replaces its own file silently.
+    """
+    path = Path(path)
+    if os.path.lexists(path):
+        if not path.is_file():
+            raise OutputError(f"cannot write {str(path)!r}: it exists and is not a file")
+        try:
+            old = path.read_bytes()
+        except OSError as exc:
+            raise OutputError(
+                f"cannot read {str(path)!r} before replacing it: {exc.strerror or exc}"
+            ) from None
+        if old == data:
+            return path
+        record = _read_cfg_record(path.parent)
+        if record.get(path.name) != _sha256(old):
+            backup, already = cfg_backup_path(path, old)
+            if not already:
+                atomic_write_bytes(backup, old)
+            logger.warning(
+                "%s was not written by colmap-pvs (COLMAP's or yours): kept it as %s before replacing it",
+                path,
+                backup,
+            )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, data)
+    record = _read_cfg_record(path.parent)
+    record[path.name] = _sha256(data)
+    atomic_write_bytes(
+        path.parent / CFG_RECORD, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode()
+    )
+    return path
+
+
 def _check_cfg_name(name: str, path: Path) -> str:
     if not name or name != name.strip() or any(c in name for c in ",;\n\r") or name.startswith("#"):
         raise ConfigError(
@@ -393,7 +486,11 @@ def _check_cfg_name(name: str, path: Path) -> str:
 
 
 def write_patch_match_cfg(path: str | os.PathLike, sources: Mapping[str, Iterable[str]]) -> Path:
-    """Write ``{reference: [source, ...]}`` as an explicit ``patch-match.cfg``, atomically."""
+    """Write ``{reference: [source, ...]}`` as an explicit ``patch-match.cfg``, atomically.
+
+    A ``patch-match.cfg`` that colmap-pvs did not write (``image_undistorter``'s, or the user's) is
+    kept beside it first (see :func:`write_cfg_keeping_user_file`).
+    """
     path = Path(path)
     lines = []
     for reference, names in sources.items():
@@ -405,14 +502,18 @@ def write_patch_match_cfg(path: str | os.PathLike, sources: Mapping[str, Iterabl
                 f"cannot write {str(path)!r}: reference {reference!r} is listed as its own source"
             )
         lines += [_check_cfg_name(reference, path), ", ".join(names)]
-    return atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    return write_cfg_keeping_user_file(path, ("\n".join(lines) + "\n").encode())
 
 
 def write_fusion_cfg(path: str | os.PathLike, names: Iterable[str]) -> Path:
-    """Write ``fusion.cfg`` (one image name per line: the maps ``stereo_fusion`` fuses), atomically."""
+    """Write ``fusion.cfg`` (one image name per line: the maps ``stereo_fusion`` fuses), atomically.
+
+    A ``fusion.cfg`` that colmap-pvs did not write is kept beside it first (see
+    :func:`write_cfg_keeping_user_file`).
+    """
     path = Path(path)
     lines = [_check_cfg_name(n, path) for n in names]
-    return atomic_write_bytes(path, "".join(line + "\n" for line in lines).encode())
+    return write_cfg_keeping_user_file(path, "".join(line + "\n" for line in lines).encode())
 
 
 def read_fusion_cfg(path: str | os.PathLike) -> list[str]:
