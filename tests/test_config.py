@@ -89,10 +89,9 @@ def test_cli_flags_come_from_the_dataclass():
 def test_stereo_config_built_in_python_refuses_a_float_for_an_int_field():
     from colmap_pvs.stereo import CompletionConfig, PhotometricConfig
 
-    cfg = stereo_config(workspace_path=Path("w"), geom_fill_segment_min_pixels=40)
-    assert cfg.completion.segment_min_pixels == 40
-    bad = ((CompletionConfig, "segment_min_pixels", 30.0, "geom_fill_segment_min_pixels"),
-           (CompletionConfig, "min_sources", 2.0, "geom_fill_min_sources"),
+    cfg = stereo_config(workspace_path=Path("w"), geom_fill_min_sources=4)
+    assert cfg.completion.min_sources == 4
+    bad = ((CompletionConfig, "min_sources", 2.0, "geom_fill_min_sources"),
            (PhotometricConfig, "num_views", True, "num_views"))
     for cls, name, value, flag in bad:  # the message names the flag
         with pytest.raises(ConfigError, match=f"{flag} must be an integer"):

@@ -17,12 +17,33 @@ from colmap_pvs.stereo import StereoConfig
     ("key", "value"),
     [("min_confidence", 2), ("min_confidence", "nan"), ("min_confidence", -0.1), ("threads", -3),
      ("num_views", 1), ("min_sources", 0), ("max_image_size", 8), ("prior_blend_texture", 2),
-     ("prior_blend_texture", -0.01), ("prior_agreement_scale", -1), ("prior_blend_window", 4),
-     ("prior_blend_window", 0)],
+     ("prior_blend_texture", -0.01), ("prior_agreement_scale", -1), ("geom_min_consistent", 0),
+     ("geom_fill_min_sources", 0), ("adapt_steps", -1), ("ray_worker_threads", 0)],
 )
 def test_stereo_config_refuses_bad_values(key, value):
     with pytest.raises(ConfigError, match=key):
         config_from_dict(StereoConfig, {"workspace_path": "w", key: value})
+
+
+def test_removed_stereo_options_are_accepted_only_with_their_fixed_value(caplog):
+    """An old saved config or script may name an option that is gone: its fixed value is accepted
+    with a warning naming it, any other value is refused naming it."""
+    for key, fixed in StereoConfig.REMOVED_OPTIONS.items():
+        caplog.clear()
+        cfg = config_from_dict(StereoConfig, {"workspace_path": "w", key: fixed})
+        assert cfg == StereoConfig(workspace_path=Path("w"))
+        assert any(key in r.getMessage() and r.levelname == "WARNING" for r in caplog.records)
+        with pytest.raises(ConfigError, match=key):
+            config_from_dict(StereoConfig, {"workspace_path": "w", key: fixed + 1})
+
+
+def test_old_flat_stereo_config_file_is_read_as_the_nested_config(tmp_path):
+    """A resolved config saved before the configs were nested (flat flag names) still loads."""
+    flat = {"workspace_path": "w", "num_views": 3, "geom_consistency": False, "geom_fill_min_sources": 1,
+            "adapt_steps": 0, "ray_workers": 2, "wide_sources": 0, "geom_max_normal_error": 180.0}
+    cfg = config_from_dict(StereoConfig, flat)
+    assert cfg.photometric.num_views == 3 and cfg.geometric.enabled is False
+    assert cfg.completion.min_sources == 1 and cfg.ray.workers == 2
 
 
 def test_stereo_cli_refuses_bad_values(tmp_path, capsys):

@@ -775,9 +775,11 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
 
-def test_wide_sources_reach_select_views_and_stereo(analytic_scene, tmp_path, tiny_checkpoint):
-    # select-views --wide_sources and stereo's wide_sources pick the same sources as the view selection
-    # with that setting, which differ from the default's on this scene (N = 3: 1 of the 2 sources wide)
+def test_select_views_wide_sources_reach_stereo_through_patch_match_cfg(analytic_scene, tmp_path,
+                                                                       tiny_checkpoint):
+    # select-views --wide_sources picks the same sources as the view selection with that setting, which
+    # differ from the default's on this scene (N = 3: 1 of the 2 sources wide); stereo reads them from
+    # the patch-match.cfg it wrote
     from colmap_pvs.io.workspace import read_patch_match_cfg
     from colmap_pvs.views import ViewSelectionConfig, select_views
 
@@ -796,9 +798,9 @@ def test_wide_sources_reach_select_views_and_stereo(analytic_scene, tmp_path, ti
         written = {name: spec.names for name, spec in read_patch_match_cfg(cfg_path).items()}
         assert written == expected[wide]
         ctx = stereo_module.prepare_stereo(stereo_config(
-            workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, wide_sources=wide))
+            workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3))
         try:
-            chosen = {name: ref.source_names for name, ref in ctx.selection.references.items()}
+            chosen = {name: ctx.sources_of(name)[0] for name in ctx.references}
         finally:
             ctx.close()
         assert chosen == expected[wide]

@@ -29,7 +29,6 @@ def adapt_config(config: StereoConfig):
         steps=config.adapt.steps,
         max_seconds=config.adapt.max_seconds,
         lr=config.adapt.lr,
-        seed=config.adapt.seed,
         num_views=config.photometric.num_views,
         threads=config.threads,
         pseudo_labels=config.adapt.pseudo_labels,
@@ -45,8 +44,7 @@ def pseudo_label_key(config: StereoConfig, ws: Workspace) -> dict | None:
     kind = config.adapt.pseudo_labels
     if kind == "none":
         return None
-    settings = {**pass_settings(config, "photometric"), "wide_sources": config.wide_sources,
-                **pass_settings(config, "geometric")}
+    settings = {**pass_settings(config, "photometric"), **pass_settings(config, "geometric")}
     if kind == "filled":
         settings.update(pass_settings(config, "completion"))
     settings["format_versions"] = {k: FORMAT_VERSIONS[k] for k in ("photometric", "geometric", kind)}

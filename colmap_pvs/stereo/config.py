@@ -14,7 +14,6 @@ from typing import ClassVar, Literal
 
 from ..config import check_int_fields, check_range, config_flags
 from ..errors import ConfigError
-from ..views import WIDE_SOURCES_HELP
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_default.pt"
 #: The resolved config of the last run, in ``stereo/``.
@@ -79,13 +78,10 @@ class PhotometricConfig:
     prior_blend_texture: float = field(
         default=0.01,
         metadata={
-            "help": "where the image's grey-level standard deviation (0-1 scale, over "
-            "prior_blend_window pixels) is below this, the depth moves towards the sparse prior in log "
+            "help": "where the image's grey-level standard deviation (0-1 scale, over 7x7 map "
+            "pixels) is below this, the depth moves towards the sparse prior in log "
             "depth, all the way where the image is flat (0 = off)"
         },
-    )
-    prior_blend_window: int = field(
-        default=7, metadata={"help": "window (map pixels, odd) of prior_blend_texture"}
     )
     prior_agreement_scale: float = field(
         default=0.05,
@@ -101,8 +97,6 @@ class PhotometricConfig:
         check_range("min_confidence", self.min_confidence, low=0.0, high=1.0)
         check_range("prior_blend_texture", self.prior_blend_texture, low=0.0, high=1.0)
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
-        if self.prior_blend_window < 1 or self.prior_blend_window % 2 == 0:
-            raise ConfigError(f"prior_blend_window must be an odd number >= 1, got {self.prior_blend_window}")
         check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
         check_range("network_min_size", self.network_min_size, low=16)
         if 0 < self.max_image_size < 16:
@@ -126,9 +120,6 @@ class GeometricConfig:
         default=2.0, metadata={"help": "max forward-backward reprojection error (px)"}
     )
     max_depth_error: float = field(default=0.03, metadata={"help": "max relative depth error |z'-d|/d"})
-    max_normal_error: float = field(
-        default=180.0, metadata={"help": "max normal angle (degrees; >= 180 disables)"}
-    )
     min_visibility: float = field(
         default=0.2, metadata={"help": "consult a source only where its learned visibility >= this"},
     )
@@ -194,7 +185,7 @@ class GeometricConfig:
         check_range("geom_num_sources", self.num_sources, low=0)
         if self.min_consistent < 1:
             raise ConfigError(f"geom_min_consistent must be >= 1, got {self.min_consistent}")
-        for name in ("max_reproj_error", "max_depth_error", "max_normal_error", "seed_depth_error"):
+        for name in ("max_reproj_error", "max_depth_error", "seed_depth_error"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"geom_{name} must be > 0, got {getattr(self, name)}")
 
@@ -222,20 +213,10 @@ class CompletionConfig:
             "(the region between image edges) where that plane fits them"
         },
     )
-    segment_min_pixels: int = field(
-        default=30, metadata={"help": "known pixels a segment needs to give its plane"}
-    )
-    segment_inliers: float = field(
-        default=0.6,
-        metadata={"help": "least fraction of a segment's known pixels within 3 % of its plane for the "
-                  "segment to give it"},
-    )
 
     def __post_init__(self) -> None:
         check_int_fields(self, "geom_fill_")
         check_range("geom_fill_min_sources", self.min_sources, low=1)
-        check_range("geom_fill_segment_min_pixels", self.segment_min_pixels, low=3)
-        check_range("geom_fill_segment_inliers", self.segment_inliers, low=0.0, high=1.0)
 
 
 @dataclass(frozen=True)
@@ -251,7 +232,6 @@ class AdaptationConfig:
     )
     max_seconds: float = field(default=0.0, metadata={"help": "time limit in seconds (0 = none)"})
     lr: float = field(default=1e-4, metadata={"help": "learning rate"})
-    seed: int = field(default=0, metadata={"help": "seed"})
     pseudo_labels: Literal["none", "geometric", "filled"] = field(
         default="none",
         metadata={
@@ -316,7 +296,6 @@ class StereoConfig:
         default=False, metadata={"help": "write PNG previews of depth, normals, confidence, visibility"}
     )
     min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
-    wide_sources: int = field(default=0, metadata={"help": WIDE_SOURCES_HELP})
     backend: Literal["local", "ray"] = field(
         default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
     )
@@ -326,7 +305,11 @@ class StereoConfig:
     adapt: AdaptationConfig = _section(AdaptationConfig, "adapt_", "test-time adaptation")
     ray: RayConfig = _section(RayConfig, "ray_", "Ray backend (--backend ray)")
 
-    REMOVED_OPTIONS: ClassVar[dict[str, object]] = {}
+    #: Options that are gone, with the value they now always have (accepted with a warning).
+    REMOVED_OPTIONS: ClassVar[dict[str, object]] = {
+        "wide_sources": 0, "prior_blend_window": 7, "geom_max_normal_error": 180.0,
+        "geom_fill_segment_min_pixels": 30, "geom_fill_segment_inliers": 0.6, "adapt_seed": 0,
+    }
 
     def __post_init__(self) -> None:  # bad values are refused where they enter
         check_int_fields(self)

@@ -309,7 +309,7 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
         net, ckpt_path, adapt_seconds = adapt_network(config, ws, ckpt_path, device)
     selection: ViewSelection = select_views(
         model_sparse,
-        ViewSelectionConfig(num_views=config.photometric.num_views, wide_sources=config.wide_sources),
+        ViewSelectionConfig(num_views=config.photometric.num_views),
     )
     refs = choose_references(ws, model_sparse)
     return StereoContext(

@@ -110,8 +110,7 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if cfg.completion.segments:
         t0 = time.perf_counter()
         image = ctx.images.get(name, cfg.photometric.max_image_size, (w, h))
-        plane, inliers = segment_planes(known, image, ~kept, min_pixels=cfg.completion.segment_min_pixels,
-                                        min_inliers=cfg.completion.segment_inliers)
+        plane, inliers = segment_planes(known, image, ~kept)
         segmented = ~kept & (plane > 0)
         timings["segments"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -173,7 +173,7 @@ def _check_setup(ctx: StereoContext, name: str) -> CheckSetup | str:
 def _check_kwargs(ctx: StereoContext) -> dict:
     cfg = ctx.config.geometric
     return {"max_reproj_error": cfg.max_reproj_error, "max_depth_error": cfg.max_depth_error,
-            "max_normal_error": cfg.max_normal_error, "min_visibility": cfg.min_visibility,
+            "min_visibility": cfg.min_visibility,
             "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
 
 

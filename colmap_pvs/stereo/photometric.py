@@ -32,6 +32,9 @@ from .outputs import fingerprint, is_current, photometric_settings, write_pass
 
 logger = logging.getLogger(__name__)
 
+#: Window (map pixels, odd) over which ``prior_blend_texture`` measures the image's texture.
+PRIOR_BLEND_WINDOW = 7
+
 
 @dataclass
 class NetworkMaps:
@@ -110,7 +113,7 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
         conf = conf * prior_agreement(depth, prior, cfg.prior_agreement_scale)
         if cfg.prior_blend_texture > 0:
             rgb = guide if guide is not None else images[0]
-            weight = texture_weight(rgb, cfg.prior_blend_window, cfg.prior_blend_texture)
+            weight = texture_weight(rgb, PRIOR_BLEND_WINDOW, cfg.prior_blend_texture)
             depth = blend_with_prior(depth, prior, weight)
         timings["prior_blend"] = time.perf_counter() - t0
     t0 = time.perf_counter()
