@@ -139,7 +139,7 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
 
 def seed_provenance_path(ws: Workspace, name: str) -> Path:
     """``stereo/seed_maps/NAME.json``: the fingerprint of the check that made ``NAME.bin``."""
-    return seed_map_path(ws, name).with_name(f"{name}.json")
+    return seed_map_path(ws, name).with_suffix(".json")
 
 
 def write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -> None:
