@@ -804,3 +804,25 @@ def test_select_views_wide_sources_reach_stereo_through_patch_match_cfg(analytic
         finally:
             ctx.close()
         assert chosen == expected[wide]
+
+
+def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthetic_ws, tmp_path,
+                                                                          tiny_checkpoint):
+    """``--previews`` is an output-only option: a rerun that only adds it writes the previews of every
+    pass from the maps on disk and recomputes nothing (maps and provenance stay as they were)."""
+    ws = _copy(synthetic_ws, tmp_path)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+                        geom_min_consistent=1)
+    first = run_stereo(cfg)
+    assert first.processed and not (ws / "stereo" / "previews").exists()
+    stereo = ws / "stereo"
+    before = {p: p.read_bytes() for d in ("depth_maps", "provenance") for p in (stereo / d).rglob("*")}
+    res = run_stereo(replace_config(cfg, previews=True))
+    assert not res.processed and not res.geometric_processed and not res.filled_processed
+    assert sorted(res.already_done) == sorted(first.processed)
+    assert {p: p.read_bytes() for p in before} == before
+    for name in first.processed:
+        for stage in ("photometric", "geometric", "filled"):
+            assert stereo_outputs.preview_path(load_workspace(ws)[0], name, stage).is_file()
+        assert (stereo / "previews" / f"{name}.normal.png").is_file()
+        assert list((stereo / "previews").glob(f"{name}.visibility.*.png"))

@@ -27,6 +27,7 @@ from .outputs import (
     seed_map_path,
     stage_settings,
     write_filled,
+    write_missing_previews,
 )
 
 
@@ -80,6 +81,8 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
                     sources={s: p["fingerprint"] for s, p in source_prov.items()})
     size = tuple(prov.get("image_size", ctx.map_size(name)))
     if not cfg.overwrite and is_current(ws, name, "filled", fingerprint(settings), size):
+        if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
+            write_missing_previews(ws, name, "filled", entry.depth_range if entry is not None else None)
         return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     # The seeds of the reference and of its sources are what is known.

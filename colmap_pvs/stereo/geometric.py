@@ -39,6 +39,7 @@ from .outputs import (
     seed_map_path,
     seed_provenance_path,
     stage_settings,
+    write_missing_previews,
     write_pass,
     write_seeds,
 )
@@ -304,6 +305,8 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     size = tuple(prov.get("image_size", ctx.map_size(name)))
     if (not cfg.overwrite and is_current(ws, name, "geometric", fingerprint(settings), size)
             and geometric_files_exist(ws, name)):
+        if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
+            write_missing_previews(ws, name, "geometric", entry.depth_range if entry is not None else None)
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     all_sources = list(prov.get("sources", []))

@@ -21,6 +21,7 @@ from ..io.files import atomic_write_bytes
 from ..io.maps import (
     read_array,
     read_depth_map,
+    read_normal_map,
     save_depth_preview,
     save_normal_preview,
     save_scalar_preview,
@@ -126,14 +127,59 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
     timings["writes"] = time.perf_counter() - t0
     if previews:
         t0 = time.perf_counter()
-        out = ws.stereo_dir / "previews"
-        stem = out / (f"{name}.photometric" if stage == "photometric" else name)
-        save_depth_preview(f"{stem}.depth.png", depth, vmin=depth_range[0], vmax=depth_range[1])
-        save_normal_preview(f"{stem}.normal.png", normals)
-        save_scalar_preview(f"{stem}.confidence.png", conf)
-        for k, src in enumerate(sources):
-            save_scalar_preview(out / f"{name}.visibility.{k:02d}.{Path(src).stem}.png", vis[k])
+        write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
         timings["previews"] = time.perf_counter() - t0
+
+
+def preview_path(ws: Workspace, name: str, stage: Stage) -> Path:
+    """The depth preview of ``name``'s ``stage`` maps: ``stereo/previews/NAME.photometric.depth.png``,
+    ``NAME.depth.png`` (geometric) or ``NAME.filled.depth.png``."""
+    ws.depth_map_path(name, stage)  # validates name and stage
+    infix = "" if stage == "geometric" else f".{stage}"
+    return ws.stereo_dir / "previews" / f"{name}{infix}.depth.png"
+
+
+def write_previews(ws: Workspace, name: str, stage: Stage, depth, depth_range, normals=None, conf=None,
+                   vis=None, sources=()) -> None:
+    """PNG previews of one pass's maps: depth (:func:`preview_path`), and where given normals,
+    confidence and the learned visibility of each source ``vis`` ``[S, h, w]``."""
+    depth_path = preview_path(ws, name, stage)
+    stem = str(depth_path)[: -len(".depth.png")]
+    save_depth_preview(depth_path, depth, vmin=depth_range[0], vmax=depth_range[1])
+    if normals is not None:
+        save_normal_preview(f"{stem}.normal.png", normals)
+    if conf is not None:
+        save_scalar_preview(f"{stem}.confidence.png", conf)
+    for k, src in enumerate(sources if vis is not None else ()):
+        save_scalar_preview(ws.stereo_dir / "previews" / f"{name}.visibility.{k:02d}.{Path(src).stem}.png",
+                            vis[k])
+
+
+def write_missing_previews(ws: Workspace, name: str, stage: Stage,
+                           depth_range: tuple[float, float] | None) -> bool:
+    """The previews of a finished pass that has none (a rerun that only adds ``--previews``), from its
+    maps on disk; ``depth_range`` ``None``: the 1st-99th percentile of its depth. Returns whether it
+    wrote them."""
+    if preview_path(ws, name, stage).is_file():
+        return False
+    depth = read_depth_map(ws.depth_map_path(name, stage))
+    if depth_range is None:
+        valid = depth[depth > 0]
+        depth_range = tuple(np.percentile(valid, [1, 99])) if valid.size else (1.0, 2.0)
+    if stage == "filled":
+        write_previews(ws, name, stage, depth, depth_range)
+        return True
+    normals = read_normal_map(ws.normal_map_path(name, stage))
+    conf = read_confidence(ws, name, stage, depth.shape)
+    vis, sources = None, []
+    vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
+    if stage == "photometric" and vis_path.is_file():
+        sources = (read_provenance(ws, name, stage) or {}).get("sources", [])
+        coarse = read_array(vis_path)
+        coarse = coarse[..., None] if coarse.ndim == 2 else coarse
+        vis = coarse.transpose(2, 0, 1) if coarse.shape[-1] == len(sources) else None
+    write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
+    return True
 
 
 
@@ -181,5 +227,4 @@ def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, preview
     write_depth_map(ws.depth_map_path(name, "filled"), depth)
     timings["writes"] = time.perf_counter() - t0
     if previews:
-        save_depth_preview(ws.stereo_dir / "previews" / f"{name}.filled.depth.png", depth,
-                           vmin=depth_range[0], vmax=depth_range[1])
+        write_previews(ws, name, "filled", depth, depth_range)

@@ -28,7 +28,7 @@ from ..upsampling import (
 )
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
-from .outputs import fingerprint, is_current, photometric_settings, write_pass
+from .outputs import fingerprint, is_current, photometric_settings, write_missing_previews, write_pass
 
 logger = logging.getLogger(__name__)
 
@@ -136,6 +136,8 @@ def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     size = ctx.map_size(name)
     settings = photometric_settings(ctx, name, sources)
     if not cfg.overwrite and is_current(ws, name, "photometric", fingerprint(settings), size):
+        if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
+            write_missing_previews(ws, name, "photometric", ctx.selection.references[name].depth_range)
         return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
     maps = network_maps(ctx, name, sources, timings)
     if isinstance(maps, str):
