@@ -435,7 +435,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
         dense_path=dense,
         num_images=len(names),
         skipped_photos=skipped_photos,
-        previews_path=previews if config.previews or previews.is_dir() else None,
+        previews_path=previews if config.stereo.previews or previews.is_dir() else None,
         stopped_after=config.stop_after,
     )
     prog = _Progress(root, result)
@@ -542,7 +542,7 @@ def _reconstruct(
         prog.mark("stereo")
         prog.stop()
     previews = dense / "stereo" / "previews"
-    result.previews_path = previews if config.previews or previews.is_dir() else None
+    result.previews_path = previews if config.stereo.previews or previews.is_dir() else None
     if config.stop_after == "stereo":
         return
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.mesh import MeshConfig, mesh
-from colmap_pvs.stereo import StereoConfig, run_stereo
+from colmap_pvs.stereo import PhotometricConfig, StereoConfig, run_stereo
 from colmap_pvs.views import SelectViewsConfig, format_selection_table, run_select_views
 
 
@@ -35,7 +35,10 @@ def main() -> None:
     print(format_selection_table(selection))
 
     # 2. PVSNet depth + normal maps in COLMAP's format (the shipped checkpoint by default).
-    result = run_stereo(StereoConfig(workspace_path=args.workspace_path, num_views=5, previews=True))
+    # One nested config per pass (StereoConfig.photometric, .geometric, .completion, ...); a mapping of
+    # flag names works too: config_from_dict(StereoConfig, {"workspace_path": ..., "num_views": 5}).
+    result = run_stereo(StereoConfig(workspace_path=args.workspace_path, previews=True,
+                                     photometric=PhotometricConfig(num_views=5)))
     print(f"stereo: {len(result.processed)} images, {result.seconds_per_image:.2f} s/image")
 
     # 3. Fusion (ours; method="colmap" runs COLMAP's stereo_fusion on the same maps) and a mesh.

@@ -800,7 +800,7 @@ def test_select_views_wide_sources_reach_stereo_through_patch_match_cfg(analytic
         ctx = stereo_module.prepare_stereo(stereo_config(
             workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3))
         try:
-            chosen = {name: ctx.sources_of(name)[0] for name in ctx.references}
+            chosen = {name: tuple(ctx.sources_of(name)[0]) for name in ctx.references}
         finally:
             ctx.close()
         assert chosen == expected[wide]

@@ -68,9 +68,9 @@ Task = tuple[str, str]  # (reference name, pass)
 def stereo_passes(config: StereoConfig) -> tuple[str, ...]:
     """The passes of a stereo run, in order: photometric, then geometric if the config asks for it,
     then the geometric maps' dense completion (``filled``) if it asks for that too."""
-    if not getattr(config, "geom_consistency", False):
+    if not config.geometric.enabled:
         return ("photometric",)
-    return ("photometric", "geometric", "filled") if getattr(config, "geom_fill", False) else (
+    return ("photometric", "geometric", "filled") if config.completion.enabled else (
         "photometric", "geometric")
 
 
@@ -78,7 +78,7 @@ def graph_sources(config: StereoConfig, sources: dict[str, list[str] | None]) ->
     """The sources the geometric task of each reference waits for (:class:`TaskGraph`): its network
     sources, or every image (``None``) when ``geom_splat_min_sources`` is on: that pass may make the
     seeds of its sources from *their* sources' photometric maps (``docs/CONVENTIONS.md``)."""
-    if getattr(config, "geom_splat_min_sources", 0) > 0:
+    if config.geometric.splat_min_sources > 0:
         return dict.fromkeys(sources)
     return dict(sources)
 
@@ -519,7 +519,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
         driver = _Driver(ray, config, passes, joined=bool(config.ray.address))
         # Test-time adaptation (adapt_steps) runs once, in the first worker; the others start after it
         # and reuse its adapted checkpoint (stereo/adapt/adapted.pt) instead of each adapting again.
-        first = 1 if getattr(config, "adapt_steps", 0) > 0 else driver.num_workers
+        first = 1 if config.adapt.steps > 0 else driver.num_workers
         for _ in range(first):
             driver.spawn()
         plan = driver.wait_for_plan()
