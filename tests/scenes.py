@@ -359,3 +359,28 @@ def reconstruct_config(**flags):
     from colmap_pvs.reconstruct import ReconstructConfig
 
     return config_from_dict(ReconstructConfig, flags)
+
+
+#: Image names COLMAP allows: sub-folders, spaces and non-ASCII letters.
+ODD_NAMES = ("cam0/view 1.png", "cam0/vüe 2.png", "cam 1/ñame 3.png", "cam 1/日本 4.png")
+
+
+def make_odd_names_workspace(root: Path) -> Path:
+    """A synthetic workspace (4 views of 96x72) whose images are named :data:`ODD_NAMES`."""
+    import dataclasses
+    import shutil
+
+    from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
+    from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
+
+    make_synthetic_workspace(root, SyntheticWorkspaceConfig(seed=3, width=96, height=72, num_views=4))
+    model = read_sparse_model(root / "sparse")
+    images = {}
+    for im, new in zip(sorted(model.images.values(), key=lambda im: im.name), ODD_NAMES, strict=True):
+        (root / "images" / new).parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(root / "images" / im.name, root / "images" / new)
+        images[im.image_id] = dataclasses.replace(im, name=new)
+    by_name = {im.name: i for i, im in images.items()}
+    write_sparse_model(dataclasses.replace(model, images=images, image_ids_by_name=by_name), root / "sparse")
+    shutil.rmtree(root / "stereo", ignore_errors=True)
+    return root

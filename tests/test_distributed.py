@@ -407,6 +407,25 @@ def test_reconstruct_stereo_step_on_ray(ray_cluster, analytic_scene, tmp_path):
     assert saved["backend"] == "ray" and saved["ray"]["workers"] == 1
 
 
+def test_ray_writes_the_maps_of_sub_folder_names_where_colmap_does(ray_cluster, tmp_path):
+    """Image names with sub-folders, spaces and non-ASCII letters on Ray workers: the same maps as a
+    local run, at COLMAP's paths."""
+    from scenes import ODD_NAMES, make_odd_names_workspace
+
+    base = make_odd_names_workspace(tmp_path / "base")
+    ckpt = make_tiny_checkpoint(tmp_path / "t.pt")
+    for backend in ("local", "ray"):
+        shutil.copytree(base, tmp_path / backend)
+        res = run_stereo(stereo_config(workspace_path=tmp_path / backend, checkpoint=ckpt, num_views=3,
+                                       max_image_size=64, geom_min_consistent=1, threads=1, backend=backend,
+                                       ray_workers=2))
+        assert sorted(res.processed) == sorted(ODD_NAMES)
+    for name in ODD_NAMES:
+        for kind in ("photometric", "geometric", "filled"):
+            rel = Path("stereo") / "depth_maps" / f"{name}.{kind}.bin"
+            assert (tmp_path / "ray" / rel).read_bytes() == (tmp_path / "local" / rel).read_bytes(), rel
+
+
 def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_path):
     """With test-time adaptation the first worker adapts, the others reuse its weights: the maps equal
     a local adapted run's."""

@@ -5,43 +5,25 @@ The whole chain works on them and writes where COLMAP does: ``stereo/depth_maps/
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
-from scenes import stereo_config
+from scenes import ODD_NAMES as ODD
+from scenes import make_odd_names_workspace, stereo_config
 
 from colmap_pvs.cli.main import main
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.io.ply import read_point_cloud
-from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.stereo import run_stereo
-from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
-
-ODD = ("cam0/view 1.png", "cam0/vüe 2.png", "cam 1/ñame 3.png", "cam 1/日本 4.png")
 
 
 @pytest.fixture(scope="module")
 def odd_ws(tmp_path_factory) -> Path:
-    """A synthetic workspace whose four images live in sub-folders with spaces and non-ASCII names."""
-    root = tmp_path_factory.mktemp("names") / "ws"
-    make_synthetic_workspace(root, SyntheticWorkspaceConfig(seed=3, width=96, height=72, num_views=4))
-    model = read_sparse_model(root / "sparse")
-    old = sorted(model.images.values(), key=lambda im: im.name)
-    assert len(old) == len(ODD)
-    images = {}
-    for im, new in zip(old, ODD, strict=True):
-        (root / "images" / new).parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(root / "images" / im.name, root / "images" / new)
-        images[im.image_id] = dataclasses.replace(im, name=new)
-    by_name = {im.name: i for i, im in images.items()}
-    write_sparse_model(dataclasses.replace(model, images=images, image_ids_by_name=by_name), root / "sparse")
-    shutil.rmtree(root / "stereo", ignore_errors=True)
-    return root
+    return make_odd_names_workspace(tmp_path_factory.mktemp("names") / "ws")
 
 
 def test_stereo_fuse_and_previews_work_on_sub_folder_names_with_spaces_and_non_ascii(odd_ws, tmp_path,
