@@ -286,6 +286,8 @@ def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarra
 
 
 def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
+    """The geometric pass of reference ``name``, once the photometric maps of it and of its sources
+    exist: its checked maps and seeds, unless current (module docstring)."""
     cfg, ws = ctx.config, ctx.workspace
     start = time.perf_counter()
     timings: dict[str, float] = {}

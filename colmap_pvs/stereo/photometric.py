@@ -127,6 +127,7 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
 
 
 def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
+    """The photometric pass of reference ``name``: its network maps, unless current (module docstring)."""
     cfg, ws = ctx.config, ctx.workspace
     start = time.perf_counter()
     timings: dict[str, float] = {}
