@@ -570,7 +570,7 @@ def compute_depth_range(
         )
         return None
     depth_range, note = _robust_depth_range(depths, config, repr(image.name))
-    if note is not None:  # harmless and expected (SfM noise): a detail, not a warning (issue 41)
+    if note is not None:  # harmless and expected (SfM noise): a detail, not a warning
         logger.debug("image %s", note)
     return depth_range
 
@@ -749,7 +749,7 @@ def _log_selection_summary(
     n_images: int, skipped: Sequence[SkippedImage], few_sources: Sequence[str], n_sources: int,
     n_outliers: int,
 ) -> None:
-    """One short line per kind of per-image note of :func:`select_views` (issue 41: the details of
+    """One short line per kind of per-image note of :func:`select_views` (the details of
     each image are at DEBUG, which ``--log_level DEBUG`` shows)."""
     if skipped:  # the user may want to act: these images get no depth map
         logger.warning(
