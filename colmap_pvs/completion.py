@@ -3,7 +3,7 @@
 The geometric pass keeps the pixels that its sources confirm (on hololens-dev 66 % of them, 75 %
 within 5 % of the ground truth) and drops the rest, mostly untextured walls and cupboards where the
 network's photometric depth is wrong (26 % within 5 % there). The completion fills them in three steps,
-measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02):
+measured on hololens-dev (``benchmarks/RESULTS.md``):
 
 1. **The other views' kept pixels** (:func:`splat_depths`). A pixel this view dropped is often kept
    by a source that saw it better; the sources' geometric maps are projected into the reference
@@ -20,11 +20,11 @@ measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02):
    the same way.
 
 The stereo step hands these functions the *seeds* of the geometric pass as the kept pixels (those
-that 3 sources agree with within 2.5 %, ``stereo/seed_maps``; stop 28: 67.1 -> 69.8 % within 5 % on
-hololens-dev), of the reference and of its sources. Every kept pixel stays as it is.
-:func:`completed_confidence` ranks the kept pixels first, then the
-pixels the sources or the segment planes gave, then the fitted ones. The stereo step writes the
-result as ``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
+that 3 sources agree with within 2.5 %, ``stereo/seed_maps``: 67.1 -> 69.8 % within 5 % on
+hololens-dev, ``benchmarks/RESULTS.md``), of the reference and of its sources. Every kept pixel
+stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the pixels the
+sources or the segment planes gave, then the fitted ones. The stereo step writes the result as
+``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
 (``docs/CONVENTIONS.md``); COLMAP's fusion never reads it. Arrays are numpy ``[H, W]`` (depth in
 the map's units, 0 = none).
 """

@@ -612,7 +612,7 @@ def fuse(config: FuseConfig) -> FuseResult:
         else:
             result.skipped[n] = f"no {config.input_type} depth/normal map"
             logger.debug("fusion: skipping %s: no %s depth/normal map", n, config.input_type)
-    if result.skipped:  # one line, not one per image (issue 41)
+    if result.skipped:  # one line, not one per image; each image at DEBUG
         missing = list(result.skipped)
         shown = ", ".join(repr(n) for n in missing[:3]) + (
             f" and {len(missing) - 3} more" if len(missing) > 3 else ""

@@ -2,7 +2,7 @@
 
 The network's coarse planes are centred on a dense prior fitted to the SfM points (an affine fit in
 inverse depth, :func:`colmap_pvs.model.cost.affine_fill_inverse_depth`). Two uses of that prior after
-the network, both measured on hololens-dev (``benchmarks/RESULTS.md``, 2026-12-02):
+the network, both measured on hololens-dev (``benchmarks/RESULTS.md``):
 
 - **No texture, no matching.** Where the image is flat (grey-level standard deviation under a few
   levels), the cost volume is flat too and the network's depth is worse than the prior's (AbsRel

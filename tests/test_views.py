@@ -180,7 +180,7 @@ def test_scores_match_brute_force(seed):
 def test_scores_chunking_is_invisible(monkeypatch):
     model = ring_model(3, n_images=10, n_points=200)
     _, S_full = compute_view_scores(model)
-    monkeypatch.setattr(views, "_MAX_PAIRS_PER_CHUNK", 7)
+    monkeypatch.setattr(views.scores, "_MAX_PAIRS_PER_CHUNK", 7)  # where the chunking reads it
     _, S_chunked = compute_view_scores(model)
     np.testing.assert_allclose(S_chunked, S_full, rtol=1e-12)
 

@@ -38,8 +38,7 @@ rounded; the stored pose then differs from the input by the rounding only (~1e-6
 SIFT runs with a lower peak threshold than COLMAP's (``sift_peak_threshold`` 0.002 instead of
 0.0067): with the poses known, every extra match that survives triangulation is a depth hint for
 the network. Measured on ``hololens-dev`` (178 frames): 1174 -> 1932 keypoints per frame, 15,181 ->
-23,136 points, and the depth maps of ``benchmarks/hololens_quick.py`` improve (``benchmarks/RESULTS.md``,
-stop 25).
+23,136 points, and the depth maps of ``benchmarks/hololens_quick.py`` improve (``benchmarks/RESULTS.md``).
 
 The settings that shape the model are recorded in ``output_path/import_poses.json``; a rerun reuses
 the model only when they match, and otherwise refuses (or, with ``overwrite``, recomputes).

@@ -275,7 +275,7 @@ def read_sparse_model(
         cid: _convert_camera(rec.cameras[cid], path, require_pinhole, warn_distortion) for cid in camera_ids
     }
     distorted = sorted({c.model for c in cameras.values() if c.model not in PINHOLE_MODELS})
-    if warn_distortion and distorted:  # one line, not one per camera (issue 41); each camera at DEBUG
+    if warn_distortion and distorted:  # one line, not one per camera; each camera at DEBUG
         n = sum(c.model not in PINHOLE_MODELS for c in cameras.values())
         logger.warning(
             "%d of %d camera(s) in %s are %s; their distortion is ignored",

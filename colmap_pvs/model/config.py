@@ -63,7 +63,7 @@ class PVSNetConfig:
             "help": "aggregation: weight each source's cost, per pixel and depth plane, by whether the "
             "plane's point projects inside that source image (the cascade stages: by the share of their "
             "planes that do), so a source that cannot see a pixel adds no zero cost to its mean; adds no "
-            "parameters, but a network must be trained with it (benchmarks/RESULTS.md, stop 35)"
+            "parameters, but a network must be trained with it (measured: see benchmarks/RESULTS.md)"
         },
     )
     truncation_threshold: float = field(
@@ -162,7 +162,7 @@ class PVSNetConfig:
         metadata={
             "help": "inference only (training is float32): dtype of the convolutions' inputs, weights and "
             "hidden activations; bfloat16 is ~2x faster on CPUs with AVX512-BF16 or AMX and moves the "
-            "depths slightly (benchmarks/RESULTS.md, issue 14); adds no parameters"
+            "depths slightly (measured: see benchmarks/RESULTS.md); adds no parameters"
         },
     )
     loss_weights: tuple[float, ...] = field(

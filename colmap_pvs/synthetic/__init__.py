@@ -2,7 +2,7 @@
 
 - :mod:`.textures`: shipped CC0 / public-domain photographs and procedural textures.
 - :mod:`.mesh`, :mod:`.scenes`: textured primitives and the ``object`` / ``room`` / ``facade`` / ``plant``
-  families.
+  families (:mod:`.scene_types`, :mod:`.builder`, :mod:`.families`).
 - :mod:`.cameras`: video-like, unstructured and "disturbing" camera rigs.
 - :mod:`.render`: open3d ray casting (GT depth and normals) and per-view photometric changes.
 - :mod:`.sfm`: simulated sparse points with tracks, as a :class:`~colmap_pvs.types.SparseModel`.

@@ -12,6 +12,8 @@ Entry point: :func:`train` (``Trainer(config).train()``), used by the CLI::
 - :mod:`.mvsnet_dataset`: DTU-training / BlendedMVS folders as the same sample dicts as
   :class:`colmap_pvs.synthetic.SyntheticMVSDataset`;
 - :mod:`.trainer`: :class:`Trainer` (seeded, resumable, SIGINT/SIGTERM-safe).
+- :mod:`.data`: the datasets a config selects and :class:`StepSampler`; :mod:`.rng`: the RNG states
+  a checkpoint keeps; :mod:`.logs`: ``log.csv``, ``val.csv`` and the loss curves.
 """
 
 from __future__ import annotations
