@@ -57,9 +57,7 @@ MODEL_IO_ALLOWED = {"colmap_pvs.io.files"}
 
 #: The modules of ``colmap_pvs.stereo`` that may import ``colmap_pvs.adapt`` (which trains), and only
 #: inside a function, so that inference without test-time adaptation never loads the training code.
-#: ``stereo.run`` asks ``adapt.adapted_is_current`` before the pseudo-label round; that lookup belongs
-#: in the adaptation hook too.
-STEREO_ADAPT_HOOKS = {"colmap_pvs.stereo.adaptation", "colmap_pvs.stereo.run"}
+STEREO_ADAPT_HOOKS = {"colmap_pvs.stereo.adaptation"}
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from ..config import replace_config
 from ..io.files import file_sha256
 from ..io.workspace import Workspace
 from .config import FORMAT_VERSIONS, StereoConfig, pass_settings
-from .network import load_stereo_model
+from .network import base_checkpoint_path, load_stereo_model
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +52,16 @@ def pseudo_label_key(config: StereoConfig, ws: Workspace) -> dict | None:
         settings["patch_match_cfg_sha256"] = file_sha256(ws.patch_match_cfg)
     text = json.dumps(settings, sort_keys=True, default=str).encode()
     return {"kind": kind, "settings_sha256": hashlib.sha256(text).hexdigest()}
+
+
+def adapted_exists(config: StereoConfig, ws: Workspace) -> bool:
+    """Whether the adapted weights that ``config`` asks for exist already (so the pseudo-labels'
+    first round is not needed)."""
+    from ..adapt import adapted_is_current
+
+    base = base_checkpoint_path(config)
+    return base.is_file() and adapted_is_current(ws.stereo_dir, base, adapt_config(config),
+                                                 pseudo_label_key(config, ws))
 
 
 def adapt_network(config: StereoConfig, ws: Workspace, base: Path, device: torch.device):

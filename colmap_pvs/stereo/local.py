@@ -96,7 +96,7 @@ def run_local(config: StereoConfig) -> StereoResult:
     wall = time.perf_counter()
     ctx = prepare_stereo(config, background_io=True)
     ws = ctx.workspace
-    remove_orphan_temps(ws.stereo_dir, recursive=True)  # issue 11: what a killed run left behind
+    remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
     t_prepare = time.perf_counter() - wall
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
                 checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
@@ -149,7 +149,7 @@ def run_local(config: StereoConfig) -> StereoResult:
     kind = final_kind(config)
     done = [n for n in names
             if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
-    if not done:  # issue 11: an error, and the previous fusion.cfg is kept (not emptied)
+    if not done:  # an error, and the previous fusion.cfg is kept (not emptied)
         reasons = "; ".join(f"{n}: {r}" for n, r in list(result.skipped.items())[:3])
         raise WorkspaceError(
             f"no {kind} depth map in {str(ws.stereo_dir)!r}: all {len(names)} reference(s) were skipped "

@@ -84,7 +84,7 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
     timings["prior"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
-        if ctx.device.type == "cpu":  # issue 14: refuse up front what would not fit in memory
+        if ctx.device.type == "cpu":  # refuse up front what would not fit in memory
             check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
         depth, conf, vis, prior = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse,
                                                  ctx.device)

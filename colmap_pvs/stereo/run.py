@@ -7,11 +7,10 @@ import time
 
 from ..config import replace_config
 from ..io.workspace import detect_workspace
-from .adaptation import adapt_config, pseudo_label_key
+from .adaptation import adapted_exists
 from .config import StereoConfig
 from .context import StereoResult
 from .local import run_local
-from .network import base_checkpoint_path
 from .ray import run_stereo_ray
 
 logger = logging.getLogger(__name__)
@@ -41,12 +40,8 @@ def run_stereo(config: StereoConfig) -> StereoResult:
 def _pseudo_label_round(config: StereoConfig) -> float:
     """Self-training's first round: every pass with the base checkpoint, whose maps become the
     adaptation's pseudo-labels. Skipped (0 s) when the adapted weights for them already exist."""
-    from ..adapt import adapted_is_current
-
     ws = detect_workspace(config.workspace_path)  # the paths only: the run itself reads the model
-    base = base_checkpoint_path(config)
-    if base.is_file() and adapted_is_current(ws.stereo_dir, base, adapt_config(config),
-                                             pseudo_label_key(config, ws)):
+    if adapted_exists(config, ws):
         return 0.0
     logger.info("test-time adaptation on %s pseudo-labels: a first run with the base checkpoint",
                 config.adapt.pseudo_labels)
