@@ -78,8 +78,8 @@ class GTView:
 
 
 def gt_cloud(views: list[GTView], voxel: float) -> np.ndarray:
-    """``[G, 3]`` world points of every valid GT pixel of ``views``, one per ``voxel`` cube (the mean
-    of the points in it; ``voxel <= 0``: every pixel)."""
+    """``[G, 3]`` world points of every valid GT pixel of ``views``, one per ``voxel`` cube (open3d's
+    voxel downsampling: the mean of the points in it; ``voxel <= 0``: every pixel)."""
     chunks = []
     for v in views:
         valid = v.depth > 0
@@ -89,12 +89,10 @@ def gt_cloud(views: list[GTView], voxel: float) -> np.ndarray:
     points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     if voxel <= 0 or len(points) == 0:
         return points
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((counts.size, 3))
-    np.add.at(sums, inverse, points)
-    return sums / counts[:, None]
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
+    return np.asarray(pcd.points, dtype=np.float64)
 
 
 def observed_mask(points: np.ndarray, views: list[GTView], behind: float) -> np.ndarray:
