@@ -270,7 +270,7 @@ def main() -> int:
                    help="a point more than this (metres) behind the GT surface of every view is unobserved")
     p.add_argument("--flag_points", type=float, default=5.0)
     p.add_argument("--picture", type=Path, help="JPEG of the worst frames")
-    p.add_argument("--picture_count", type=int, default=4)
+    p.add_argument("--picture_count", type=int, default=3)
     p.add_argument("--json", type=Path, help="default: the workspace's cloud_benchmark.json")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
