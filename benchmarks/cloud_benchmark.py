@@ -131,7 +131,7 @@ def frustum_cloud_score(
     accuracy over the points :func:`observed_mask` keeps (``behind``: default the largest tolerance),
     completeness over every GT point against the whole cloud. Both from
     :func:`colmap_pvs.evaluate.cloud_metrics` (voxel-normalised as ETH3D; ``*_points_pct``: plain
-    point fractions)."""
+    point fractions; ``accuracy_unmasked_pct``: every point counted, as ``cloud_metrics`` alone)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     thresholds = tuple(sorted(thresholds))
     behind = max(thresholds) if behind is None else behind
@@ -151,7 +151,7 @@ def frustum_cloud_score(
         "f1_pct": [float(x) for x in f1],
         "accuracy_points_pct": list(acc.accuracy_points_pct),
         "completeness_points_pct": list(comp.completeness_points_pct),
-        "accuracy_all_points_pct": list(comp.accuracy_pct),  # every point counted (the library's score)
+        "accuracy_unmasked_pct": list(comp.accuracy_pct),  # every point counted, as cloud_metrics alone
     }
 
 

@@ -63,7 +63,7 @@ def test_frustum_score_counts_accuracy_only_where_observed():
     expected = 100.0 * len(good) / (len(good) + len(wrong))
     np.testing.assert_allclose(s["accuracy_points_pct"], expected)
     # every point counted (no frustum), the hidden and outside points would lower it
-    assert s["accuracy_all_points_pct"][0] < s["accuracy_pct"][0]
+    assert s["accuracy_unmasked_pct"][0] < s["accuracy_pct"][0]
     a, c = np.array(s["accuracy_pct"]), np.array(s["completeness_pct"])
     np.testing.assert_allclose(s["f1_pct"], 2 * a * c / (a + c))
     assert 0 < c[0] < 100
