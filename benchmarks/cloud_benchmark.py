@@ -171,7 +171,7 @@ def gt_views(model, refs: list[str], gt_dir: Path) -> list[GTView]:
     return out
 
 
-def run_fusion(kind: str, ws: Path, colmap: str) -> tuple[Path, float]:
+def run_fusion(kind: str, ws: Path, colmap: str, fuse_overrides: dict | None = None) -> tuple[Path, float]:
     """Fuse ``ws`` the ``kind`` way into ``ws/cloud_KIND.ply``; ``(path, seconds)``."""
     out = ws / f"cloud_{kind}.ply"
     start = time.perf_counter()
@@ -186,7 +186,9 @@ def run_fusion(kind: str, ws: Path, colmap: str) -> tuple[Path, float]:
         from colmap_pvs.fusion import FuseConfig, fuse
 
         input_type = "photometric" if kind == "pvs_photometric" else "geometric"
-        fuse(FuseConfig(workspace_path=ws, output_path=out, input_type=input_type))
+        settings = {"workspace_path": ws, "output_path": out, "input_type": input_type,
+                    **(fuse_overrides or {})}
+        fuse(config_from_dict(FuseConfig, settings))
     return out, time.perf_counter() - start
 
 
@@ -263,6 +265,7 @@ def main() -> int:
     p.add_argument("--resume", action="store_true", help="keep the tag's maps (the stereo step's resume)")
     p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
     p.add_argument("--fusions", nargs="*", default=list(FUSIONS), choices=FUSIONS)
+    p.add_argument("--fuse", nargs="*", default=[], metavar="KEY=VALUE", help="FuseConfig fields (pvs)")
     p.add_argument("--reuse_clouds", action="store_true", help="score the clouds already in the workspace")
     p.add_argument("--colmap", default="colmap", help="the COLMAP executable")
     p.add_argument("--gt_voxel", type=float, default=0.01, help="GT cloud voxel (metres)")
@@ -311,7 +314,7 @@ def main() -> int:
         path = ws / f"cloud_{kind}.ply"
         fuse_s = None
         if not (a.reuse_clouds and path.is_file()):
-            path, fuse_s = run_fusion(kind, ws, a.colmap)
+            path, fuse_s = run_fusion(kind, ws, a.colmap, rd.parse_overrides(a.fuse))
         start = time.perf_counter()
         score = frustum_cloud_score(read_points(path), gt_points, views, THRESHOLDS, 0.01, a.behind)
         score.update(fusion_seconds=fuse_s, score_seconds=time.perf_counter() - start, path=str(path))

@@ -310,18 +310,25 @@ def _images_bin_order(path: Path) -> list[int]:
 
 
 def _sources_for(ws: Workspace, model: SparseModel, names: list[str], num: int) -> dict[str, list[str]]:
-    """Source views of every reference as ``stereo`` chose them (``patch-match.cfg`` if present, else
-    view selection), at most ``num`` each."""
+    """The views each reference's points are checked against, at most ``num``: those of the fused
+    ``names`` that ``stereo`` chose as its sources (``patch-match.cfg`` if present, else view
+    selection), then the next fused views by view score. Only fused views have maps to check against:
+    where the sources are no references themselves (every 3rd frame of a video a reference, its
+    nearest frames its sources), the sources alone would leave a reference one view or none."""
     from .views import ViewSelectionConfig, reference_sources, select_views
 
     selection = select_views(model, ViewSelectionConfig(num_views=num + 1))
     specs = read_patch_match_cfg(ws.patch_match_cfg) if ws.patch_match_cfg.is_file() else {}
+    fused = set(names)
     out: dict[str, list[str]] = {}
     for name in names:
-        if name not in selection.references and specs.get(name) is None:
+        entry = selection.references.get(name)
+        if entry is None and specs.get(name) is None:
             out[name] = []  # not selectable (e.g. no sparse points): stereo skipped it too
             continue
-        out[name] = list(reference_sources(selection, name, specs.get(name), num))[:num]
+        chosen = list(reference_sources(selection, name, specs.get(name), num))
+        ranked = list(entry.ranked_names) if entry is not None else []
+        out[name] = [s for s in dict.fromkeys(chosen + ranked) if s in fused and s != name][:num]
     return out
 
 

@@ -171,6 +171,29 @@ def test_view_selection_when_no_patch_match_cfg(workspace, analytic_scene):
     assert np.diff(offsets).max() <= 3  # reference + at most 2 sources
 
 
+def test_references_whose_sources_are_not_fused_are_checked_against_the_other_fused_views(
+        workspace, analytic_scene):
+    """Every 3rd frame of a video a reference, its nearest frames its sources: the sources have no
+    maps to check against, so the fused references next by view score are checked instead (as COLMAP's
+    fusion checks every fused image that sees the point). Here each reference's only source is a view
+    without maps: before, no reference had 2 views to confirm its points, and the cloud was empty."""
+    from colmap_pvs.io.workspace import write_fusion_cfg, write_patch_match_cfg
+
+    names = analytic_scene["names"]
+    refs, others = names[:3], names[3:]
+    write_patch_match_cfg(workspace / "stereo" / "patch-match.cfg", {r: [others[0]] for r in refs})
+    write_fusion_cfg(workspace / "stereo" / "fusion.cfg", refs)
+    result = fuse(FuseConfig(workspace_path=workspace))
+    assert result.num_images == 3 and result.num_points > 1000
+    assert all(result.points_per_image[r] > 0 for r in refs)
+    dist = _surface_distance(analytic_scene, read_point_cloud(result.output_path).xyz)
+    assert np.median(dist) < 1e-5 * analytic_scene["scene"].size
+    _, idx = read_visibility(result.vis_path)
+    index = image_indices(workspace / "sparse", read_sparse_model(workspace / "sparse"))
+    fused_ids = {index[r] for r in refs}
+    assert set(np.unique(idx)) <= fused_ids  # only fused views confirm points
+
+
 def test_confidence_maps_filter_pixels(workspace, analytic_scene):
     for name in analytic_scene["names"]:
         h, w = read_depth_map(workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").shape
