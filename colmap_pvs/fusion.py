@@ -62,6 +62,8 @@ from .io.workspace import (
     load_workspace,
     read_fusion_cfg,
     read_patch_match_cfg,
+    record_written_output,
+    set_aside_foreign_output,
     write_fusion_cfg,
 )
 from .types import SparseModel
@@ -522,6 +524,7 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         counts = np.zeros(0, np.int64)
         vis_idx = np.zeros(0, np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    _set_aside_foreign_cloud(result.output_path)
     write_cloud_pair(result.output_path, xyz, normals, rgb, offsets, vis_idx)  # together or not at all
     result.num_points = int(len(xyz))
 
@@ -575,6 +578,7 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
         vis_tmp = vis_path_of(tmp_ply)
         if not tmp_ply.is_file() or not vis_tmp.is_file():
             raise WorkspaceError(f"COLMAP's stereo_fusion wrote no point cloud for {str(ws.root)!r}")
+        _set_aside_foreign_cloud(out)
         commit_cloud_pair(tmp_ply, vis_tmp, out)  # together or not at all
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -582,6 +586,13 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
 
 
 # --------------------------------------------------------------------------- entry point
+
+
+def _set_aside_foreign_cloud(out: Path) -> None:
+    """``out`` and its ``.vis`` if COLMAP or the user wrote them (``dense/fused.ply`` is the name of
+    COLMAP's own fusion output): moved to ``.bak`` before ours replace them."""
+    for path in (out, vis_path_of(out)):
+        set_aside_foreign_output(path)
 
 
 def fuse(config: FuseConfig) -> FuseResult:
@@ -647,6 +658,7 @@ def fuse(config: FuseConfig) -> FuseResult:
         _fuse_colmap(config, ws, names, result)
     else:
         _fuse_pvs(config, ws, model, names, result)
+    record_written_output(out, vis_path_of(out))
     result.num_images = len(names)
     result.seconds = time.perf_counter() - start
     save_config(config, out.with_name(out.stem + CONFIG_SUFFIX), num_points=result.num_points)

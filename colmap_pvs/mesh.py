@@ -29,6 +29,7 @@ import numpy as np
 from .errors import ConfigError, MapFormatError
 from .io.files import current_umask
 from .io.ply import read_point_cloud, write_mesh
+from .io.workspace import record_written_output, set_aside_foreign_output
 
 logger = logging.getLogger(__name__)
 
@@ -206,6 +207,7 @@ def mesh(config: MeshConfig) -> Path:
             if os.path.getsize(tmp) == 0:
                 raise MapFormatError(f"COLMAP's Poisson mesher wrote nothing for {str(src)!r}")
             os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp made it private
+            set_aside_foreign_output(out)
             os.replace(tmp, out)
         finally:
             Path(tmp).unlink(missing_ok=True)
@@ -216,7 +218,9 @@ def mesh(config: MeshConfig) -> Path:
                 f"the Poisson mesh of {str(src)!r} is empty after trimming; lower --density_quantile"
             )
         logger.info("meshing: writing %s ...", out)
+        set_aside_foreign_output(out)  # COLMAP's poisson_mesher writes the same default name
         write_mesh(out, vertices, faces, normals=vnormals, colors=vcolors)
         logger.info("mesh: %d vertices, %d faces", len(vertices), len(faces))
+    record_written_output(out)
     logger.info("mesh: wrote %s in %.1f s", out, time.perf_counter() - start)
     return out

@@ -194,6 +194,24 @@ def test_references_whose_sources_are_not_fused_are_checked_against_the_other_fu
     assert set(np.unique(idx)) <= fused_ids  # only fused views confirm points
 
 
+def test_colmaps_fused_cloud_under_the_default_name_is_kept_beside_ours(workspace, caplog):
+    """``dense/fused.ply`` is also where the README's COLMAP chain writes ``stereo_fusion``'s cloud: a
+    cloud colmap-pvs did not write is moved to ``fused.ply.bak`` (and its ``.vis``) with a warning; our
+    own cloud is replaced silently on a rerun."""
+    (workspace / "fused.ply").write_bytes(b"COLMAP's cloud")
+    (workspace / "fused.ply.vis").write_bytes(b"COLMAP's vis")
+    with caplog.at_level("WARNING", logger="colmap_pvs"):
+        result = fuse(FuseConfig(workspace_path=workspace))
+    assert result.num_points > 1000
+    assert (workspace / "fused.ply.bak").read_bytes() == b"COLMAP's cloud"
+    assert (workspace / "fused.ply.vis.bak").read_bytes() == b"COLMAP's vis"
+    assert any("fused.ply.bak" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="colmap_pvs"):
+        fuse(FuseConfig(workspace_path=workspace, method="colmap"))
+    assert not list(workspace.glob("fused.ply.bak.*")) and not caplog.records
+
+
 def test_confidence_maps_filter_pixels(workspace, analytic_scene):
     for name in analytic_scene["names"]:
         h, w = read_depth_map(workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").shape

@@ -29,7 +29,7 @@ from colmap_pvs.io import (
     write_patch_match_cfg,
     write_sparse_model,
 )
-from colmap_pvs.io.workspace import CFG_RECORD
+from colmap_pvs.io.workspace import WRITTEN_RECORD
 from colmap_pvs.types import Camera, SparseModel
 
 
@@ -296,7 +296,7 @@ def test_cfg_writers_keep_the_users_file(
         write(path, other)  # identical content: a no-op
     assert path.stat().st_ino == inode
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
-    assert sorted(p.name for p in stereo.iterdir()) == sorted([name, f"{name}.bak", CFG_RECORD])
+    assert sorted(p.name for p in stereo.iterdir()) == sorted([name, f"{name}.bak", WRITTEN_RECORD])
     # the user edits it again: a second backup, the first one untouched
     path.write_text(user_text.replace("a.jpg", "z.jpg"))
     write(path, ours)
@@ -319,7 +319,7 @@ def test_select_views_keeps_image_undistorters_patch_match_cfg(
     names = sorted(read_fusion_cfg(ws.fusion_cfg))
     original = "".join(f"{n}\n__auto__, 20\n" for n in names)
     ws.patch_match_cfg.write_text(original)
-    (ws.stereo_dir / CFG_RECORD).unlink(missing_ok=True)
+    (ws.stereo_dir / WRITTEN_RECORD).unlink(missing_ok=True)
     with caplog.at_level("WARNING"):
         run_select_views(SelectViewsConfig(workspace_path=workspace_copy, num_views=3))
     assert (ws.stereo_dir / "patch-match.cfg.bak").read_text() == original

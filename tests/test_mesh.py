@@ -119,3 +119,23 @@ def test_meshing_logs_each_long_step_before_it_runs(tmp_path, caplog, method):
     if method == "open3d":
         trimming = next(i for i, m in enumerate(messages) if m.startswith("meshing: trimming"))
         assert poisson < trimming < wrote
+
+
+def test_colmaps_mesh_under_the_default_name_is_kept_beside_ours(tmp_path, caplog):
+    """``meshed-poisson.ply`` is also the name COLMAP's ``poisson_mesher`` writes in the README's chain:
+    a mesh colmap-pvs did not write is moved to ``.bak`` (with a warning) before ours replaces it; our
+    own mesh is replaced silently on a rerun."""
+    cloud = _sphere_cloud(tmp_path / "fused.ply", n=3000)
+    theirs = tmp_path / "meshed-poisson.ply"
+    theirs.write_bytes(b"COLMAP's mesh")
+    config = MeshConfig(input_path=cloud, depth=5, density_quantile=0.0, num_threads=1)
+    with caplog.at_level("WARNING"):
+        out = mesh(config)
+    assert out == theirs and (tmp_path / "meshed-poisson.ply.bak").read_bytes() == b"COLMAP's mesh"
+    assert any("meshed-poisson.ply.bak" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    mesh(config)
+    assert not (tmp_path / "meshed-poisson.ply.bak.2").exists() and not caplog.records
+    theirs.write_bytes(b"another of theirs")
+    mesh(config)
+    assert (tmp_path / "meshed-poisson.ply.bak.2").read_bytes() == b"another of theirs"

@@ -8,7 +8,7 @@ Layout (what COLMAP's ``image_undistorter`` writes, and what ``patch_match_stere
                                               warning: COLMAP's own tools only read ``sparse/``)
     root/stereo/patch-match.cfg               reference image / source images, pairs of lines
     root/stereo/fusion.cfg                    one image name per line
-    root/stereo/colmap_pvs_cfg.json           sha256 of the .cfg files colmap-pvs wrote (a .cfg
+    root/stereo/colmap_pvs_written.json       sha256 of the .cfg files colmap-pvs wrote (a .cfg
                                               COLMAP or the user wrote is kept as NAME.cfg.bak
                                               when colmap-pvs must replace it)
     root/stereo/depth_maps/NAME.{geometric,photometric}.bin
@@ -43,7 +43,9 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "CFG_BACKUP_SUFFIX",
-    "CFG_RECORD",
+    "WRITTEN_RECORD",
+    "record_written_output",
+    "set_aside_foreign_output",
     "MAP_KINDS",
     "SourceSpec",
     "UndistortConfig",
@@ -392,10 +394,11 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
     return specs
 
 
-#: Beside the ``.cfg`` files colmap-pvs writes: ``{file name: sha256 of the content we wrote}``, so
-#: that a later write can tell our own file (replaced silently) from one COLMAP or the user wrote
-#: (kept as a backup). The ``.cfg`` files themselves carry no header: COLMAP's parser has no comments.
-CFG_RECORD = "colmap_pvs_cfg.json"
+#: Beside the files colmap-pvs writes under COLMAP's names (``.cfg`` files, ``fused.ply``,
+#: ``meshed-poisson.ply``): ``{file name: sha256 of the content we wrote}``, so that a later write can
+#: tell our own file (replaced silently) from one COLMAP or the user wrote (kept as a backup). The
+#: ``.cfg`` files themselves carry no header: COLMAP's parser has no comments.
+WRITTEN_RECORD = "colmap_pvs_written.json"
 #: Suffix of the backup of a replaced ``.cfg`` colmap-pvs did not write: ``fusion.cfg.bak``, then
 #: ``fusion.cfg.bak.2``, ``fusion.cfg.bak.3``, ... when an earlier backup with other content exists.
 CFG_BACKUP_SUFFIX = ".bak"
@@ -405,9 +408,9 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def _read_cfg_record(folder: Path) -> dict[str, str]:
+def _read_written_record(folder: Path) -> dict[str, str]:
     try:
-        record = json.loads((folder / CFG_RECORD).read_text())
+        record = json.loads((folder / WRITTEN_RECORD).read_text())
     except (OSError, ValueError):
         return {}
     return {str(k): str(v) for k, v in record.items()} if isinstance(record, dict) else {}
@@ -438,12 +441,12 @@ def write_cfg_keeping_user_file(path: str | os.PathLike, data: bytes) -> Path:
     """Write a COLMAP ``.cfg`` atomically without losing one that COLMAP or the user wrote.
 
     * the file already holds ``data``: nothing is written;
-    * it holds what colmap-pvs last wrote there (its sha256 is in ``CFG_RECORD`` beside it): replaced;
+    * it holds what colmap-pvs last wrote there (its sha256 is in ``WRITTEN_RECORD`` beside it): replaced;
     * it holds anything else (``image_undistorter``'s file, a hand-edited one, or one of an older
       colmap-pvs that kept no record): copied to ``NAME.bak`` first (``NAME.bak.N`` when a different
       ``NAME.bak`` exists), with a warning naming the copy, then replaced.
 
-    The sha256 of ``data`` is recorded in ``CFG_RECORD`` so that a rerun replaces its own file silently.
+    The sha256 of ``data`` is recorded in ``WRITTEN_RECORD`` so that a rerun replaces its own file silently.
     """
     path = Path(path)
     if os.path.lexists(path):
@@ -457,7 +460,7 @@ def write_cfg_keeping_user_file(path: str | os.PathLike, data: bytes) -> Path:
             ) from None
         if old == data:
             return path
-        record = _read_cfg_record(path.parent)
+        record = _read_written_record(path.parent)
         if record.get(path.name) != _sha256(old):
             backup, already = cfg_backup_path(path, old)
             if not already:
@@ -469,12 +472,52 @@ def write_cfg_keeping_user_file(path: str | os.PathLike, data: bytes) -> Path:
             )
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, data)
-    record = _read_cfg_record(path.parent)
+    record = _read_written_record(path.parent)
     record[path.name] = _sha256(data)
     atomic_write_bytes(
-        path.parent / CFG_RECORD, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode()
+        path.parent / WRITTEN_RECORD, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode()
     )
     return path
+
+
+def set_aside_foreign_output(path: str | os.PathLike) -> Path | None:
+    """Before colmap-pvs writes the large output ``path`` (a fused cloud, a mesh): a file there that
+    colmap-pvs did not write (its sha256 is not the one recorded in ``WRITTEN_RECORD`` beside it:
+    COLMAP's ``stereo_fusion`` output, or the user's) is moved to ``NAME.bak`` (``NAME.bak.N`` when a
+    different backup exists), with a warning naming it. Returns the backup, or ``None``."""
+    from .files import file_sha256
+
+    path = Path(path)
+    if not path.is_file():
+        return None
+    if _read_written_record(path.parent).get(path.name) == file_sha256(path):
+        return None
+    number = 1
+    while True:
+        suffix = CFG_BACKUP_SUFFIX if number == 1 else f"{CFG_BACKUP_SUFFIX}.{number}"
+        backup = path.with_name(path.name + suffix)
+        if not os.path.lexists(backup):
+            break
+        number += 1
+    try:
+        os.replace(path, backup)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot move {str(path)!r} aside before replacing it: {exc.strerror or exc}"
+        ) from None
+    logger.warning("%s was not written by colmap-pvs (COLMAP's or yours): moved it to %s", path, backup)
+    return backup
+
+
+def record_written_output(*paths: str | os.PathLike) -> None:
+    """Record the sha256 of outputs colmap-pvs just wrote (see :func:`set_aside_foreign_output`)."""
+    from .files import file_sha256
+
+    for path in map(Path, paths):
+        record = _read_written_record(path.parent)
+        record[path.name] = file_sha256(path)
+        atomic_write_bytes(path.parent / WRITTEN_RECORD,
+                           (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
 
 
 def _check_cfg_name(name: str, path: Path) -> str:
