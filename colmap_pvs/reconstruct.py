@@ -529,8 +529,12 @@ def _reconstruct(
     if config.stop_after == "undistort":
         return
 
+    previews = dense / "stereo" / "previews"
     if prog.done("stereo"):
         prog.skip("stereo", "depth maps already computed")
+        if config.stereo.previews and not previews.is_dir():  # output-only: the maps stay as they are
+            logger.info("reconstruct: writing the previews of the finished depth maps")
+            run_stereo(replace_config(config.stereo, workspace_path=dense))
     else:
         prog.start("stereo")
         for stale in (fused, vis_path_of(fused), meshed):
@@ -541,7 +545,6 @@ def _reconstruct(
         result.stereo_skipped = dict(st.skipped)
         prog.mark("stereo")
         prog.stop()
-    previews = dense / "stereo" / "previews"
     result.previews_path = previews if config.stereo.previews or previews.is_dir() else None
     if config.stop_after == "stereo":
         return

@@ -238,3 +238,24 @@ def test_reconstruct_result_paths_are_set_before_the_stages(tmp_path, analytic_s
     assert result.dense_path == tmp_path / "out" / "dense"
     assert result.previews_path == tmp_path / "out" / "dense" / "stereo" / "previews"
     assert result.stopped_after == "mapping"
+
+
+def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_recomputing(analytic_scene,
+                                                                                        tmp_path):
+    """``--previews`` is output-only: a finished run without previews, rerun with them, writes the
+    previews of the finished maps and recomputes no stage (maps, cloud and mesh stay as they were)."""
+    ws = analytic_scene["root"]
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
+                 num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    reconstruct(reconstruct_config(**flags, previews=False))
+    previews = out / "dense" / "stereo" / "previews"
+    assert not previews.exists()
+    # every output but the record of the last run's resolved settings
+    before = {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file() and p.suffix != ".json"}
+    result = reconstruct(reconstruct_config(**flags, previews=True))
+    assert {"undistort", "stereo", "fusion", "mesh"} <= set(result.resumed)
+    assert result.previews_path == previews and len(list(previews.glob("*.depth.png"))) >= 5
+    changed = sorted(str(p.relative_to(out)) for p, data in before.items() if p.read_bytes() != data)
+    assert not changed, changed
