@@ -94,7 +94,8 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     _check_image_bytes(data.tobytes(), path)
     image = cv2.imdecode(data, _READ_FLAGS)
     if image is None:
-        raise WorkspaceError(f"image file {str(path)!r} could not be decoded (corrupt or unsupported format)")
+        raise WorkspaceError(f"image file {str(path)!r} could not be decoded (corrupt or unsupported "
+                             "format); replace it with the original photo")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
