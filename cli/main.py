@@ -198,6 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bool) -> None:
     """The flags of ``cmd``'s config (one group per nested config) on its parser ``p``."""
     p.set_defaults(command=cmd.name)
+    # a short usage line; the flags follow, grouped, each with its default
+    p.usage = " ".join(["%(prog)s", *(f"--{r} {r.upper()}" for r in cmd.required), "[options]",
+                        *(f"[{n.upper()}]" for n in cmd.positional)])
     if cmd.config is not None:
         add_config_arguments(p, _load(cmd.config), required=cmd.required)
         p.add_argument(
