@@ -56,6 +56,11 @@ SEGMENT_INLIER_RESIDUAL = 0.03
 #: least squares on the inliers (on hololens-dev the inlier sets settle by about the ninth).
 SEGMENT_IRLS_STEPS = 9
 
+#: Known pixels a segment needs to give its plane, and the least fraction of them within
+#: ``SEGMENT_INLIER_RESIDUAL`` of it.
+SEGMENT_MIN_PIXELS = 30
+SEGMENT_MIN_INLIERS = 0.6
+
 #: Window (pixels) in which the coarsest segmentation needs as many inliers as outliers of the planes.
 SEGMENT_LOCAL_WINDOW = 31
 
@@ -240,8 +245,8 @@ def segment_planes(
     image: np.ndarray,
     targets: np.ndarray | None = None,
     *,
-    min_pixels: int = 30,
-    min_inliers: float = 0.6,
+    min_pixels: int = SEGMENT_MIN_PIXELS,
+    min_inliers: float = SEGMENT_MIN_INLIERS,
     thresholds: tuple[tuple[int, int], ...] = SEGMENT_EDGE_THRESHOLDS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth from one robust plane per colour segment of the image (the planar prior of TAPA-MVS).

@@ -44,7 +44,8 @@ def pseudo_label_key(config: StereoConfig, ws: Workspace) -> dict | None:
     kind = config.adapt.pseudo_labels
     if kind == "none":
         return None
-    settings = {**pass_settings(config, "photometric"), **pass_settings(config, "geometric")}
+    settings = {**pass_settings(config, "photometric"), "wide_sources": 0,  # once an option
+                **pass_settings(config, "geometric")}
     if kind == "filled":
         settings.update(pass_settings(config, "completion"))
     settings["format_versions"] = {k: FORMAT_VERSIONS[k] for k in ("photometric", "geometric", kind)}

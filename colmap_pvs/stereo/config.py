@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
 
+from ..completion import SEGMENT_MIN_INLIERS, SEGMENT_MIN_PIXELS
 from ..config import check_int_fields, check_range, config_flags
 from ..errors import ConfigError
 
@@ -30,6 +31,18 @@ NETWORK_SCALE_MAX = 2.0
 MODEL_SWITCHES = ("sparse_guidance", "sparse_prior")
 
 _OFF = {"provenance": False}  # a pass's on/off switch: not one of the settings its maps depend on
+
+#: Window (map pixels, odd) over which ``prior_blend_texture`` measures the image's texture.
+PRIOR_BLEND_WINDOW = 7
+#: Settings that are no longer options but that a pass's maps still depend on, with their value: each
+#: stays in its pass's provenance under its old flag name, before the flag named second (``None``: at
+#: the end), so that the maps made while they were options stay current.
+FIXED_SETTINGS: dict[str, list[tuple[str, str | None, object]]] = {
+    "photometric": [("prior_blend_window", "prior_agreement_scale", PRIOR_BLEND_WINDOW)],
+    "geometric": [("geom_max_normal_error", "geom_min_visibility", 180.0)],  # the normal check: off
+    "completion": [("geom_fill_segment_min_pixels", None, SEGMENT_MIN_PIXELS),
+                   ("geom_fill_segment_inliers", None, SEGMENT_MIN_INLIERS)],
+}
 
 
 @dataclass(frozen=True)
@@ -307,8 +320,8 @@ class StereoConfig:
 
     #: Options that are gone, with the value they now always have (accepted with a warning).
     REMOVED_OPTIONS: ClassVar[dict[str, object]] = {
-        "wide_sources": 0, "prior_blend_window": 7, "geom_max_normal_error": 180.0,
-        "geom_fill_segment_min_pixels": 30, "geom_fill_segment_inliers": 0.6, "adapt_seed": 0,
+        "wide_sources": 0, "adapt_seed": 0,
+        **{name: value for fixed in FIXED_SETTINGS.values() for name, _, value in fixed},
     }
 
     def __post_init__(self) -> None:  # bad values are refused where they enter
@@ -326,8 +339,10 @@ class StereoConfig:
 
 def pass_settings(config: StereoConfig, section: str, *, seeds: bool = False) -> dict:
     """The settings of ``config.<section>`` that the pass's maps depend on, by flag name, in field
-    order (every field but the pass's on/off switch; with ``seeds``, only those the geometric pass's
-    seed maps depend on)."""
+    order (every field but the pass's on/off switch, and its :data:`FIXED_SETTINGS`; with ``seeds``,
+    only those the geometric pass's seed maps depend on)."""
+    entries = FIXED_SETTINGS.get(section, [])
+    fixed = {before: (name, value) for name, before, value in entries if before is not None}
     out = {}
     for flag, spec in config_flags(StereoConfig).items():
         meta = spec.field.metadata
@@ -335,5 +350,8 @@ def pass_settings(config: StereoConfig, section: str, *, seeds: bool = False) ->
             continue
         if seeds and meta.get("seeds", True) is False:
             continue
+        if flag in fixed:
+            out[fixed[flag][0]] = fixed[flag][1]
         out[flag] = getattr(getattr(config, section), spec.path[1])
+    out.update({name: value for name, before, value in entries if before is None})
     return out

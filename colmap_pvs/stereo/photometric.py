@@ -26,14 +26,12 @@ from ..upsampling import (
     resize_nearest,
     sample_depth_down,
 )
+from .config import PRIOR_BLEND_WINDOW
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
 from .outputs import fingerprint, is_current, photometric_settings, write_missing_previews, write_pass
 
 logger = logging.getLogger(__name__)
-
-#: Window (map pixels, odd) over which ``prior_blend_texture`` measures the image's texture.
-PRIOR_BLEND_WINDOW = 7
 
 
 @dataclass
