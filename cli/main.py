@@ -31,6 +31,7 @@ from colmap_pvs.config import (
     config_from_dict,
     flags_to_dict,
     merge_configs,
+    removed_options,
 )
 from colmap_pvs.errors import ColmapPVSError, ConfigError
 
@@ -160,6 +161,10 @@ def _load(ref: str):
 class _Parser(argparse.ArgumentParser):
     """An argparse parser whose errors are one line naming the flag (no usage dump)."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)  # `--num_view 3` is a mistake, not --num_views
+        super().__init__(*args, **kwargs)
+
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
@@ -220,7 +225,7 @@ def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bo
 
 def _build_config(config_cls: type, args: argparse.Namespace):
     """Config from ``--config_file`` (if given) overridden by the flags given on the command line."""
-    flags = config_flags(config_cls)
+    flags = set(config_flags(config_cls)) | set(removed_options(config_cls))
     given = {k: v for k, v in vars(args).items() if k in flags}
     if args._config_file is None:
         return config_from_dict(config_cls, given)
@@ -233,8 +238,12 @@ def _build_config(config_cls: type, args: argparse.Namespace):
         data = data["config"]
     if not isinstance(data, dict):
         raise ConfigError(f"--config_file {str(path)!r} must hold a JSON object")
-    data = flags_to_dict(config_cls, data, where=f"--config_file {str(path)!r}")
-    return config_from_dict(config_cls, merge_configs(data, flags_to_dict(config_cls, given)))
+    where = f"--config_file {str(path)!r}"
+    data = flags_to_dict(config_cls, data, where=where)
+    try:
+        return config_from_dict(config_cls, merge_configs(data, flags_to_dict(config_cls, given)))
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def _unknown_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> str:

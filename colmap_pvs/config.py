@@ -202,6 +202,18 @@ def config_flags(cls: type, default: Any = None) -> dict[str, FlagSpec]:
     return out
 
 
+def removed_options(cls: type) -> dict[str, Any]:
+    """Flag name -> fixed value of every option ``cls`` no longer has: its ``REMOVED_OPTIONS`` and
+    those of its nested configs that are flags (module docstring)."""
+    out = dict(getattr(cls, "REMOVED_OPTIONS", {}))
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        tp, _ = _unwrap_optional(hints[f.name])
+        if f.init and dataclasses.is_dataclass(tp) and "flag_prefix" in f.metadata:
+            out.update({f.metadata["flag_prefix"] + k: v for k, v in removed_options(tp).items()})
+    return out
+
+
 def _set_path(data: dict, path: tuple[str, ...], value: Any) -> None:
     for key in path[:-1]:
         inner = data.get(key)
@@ -239,7 +251,7 @@ def flags_to_dict(cls: type, flags: dict[str, Any], *, where: str | None = None)
     where = where or cls.__name__
     specs = config_flags(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    removed = getattr(cls, "REMOVED_OPTIONS", {})
+    removed = removed_options(cls)
     data: dict[str, Any] = {}
     for key, value in flags.items():
         if key in specs:
@@ -256,7 +268,7 @@ def flags_to_dict(cls: type, flags: dict[str, Any], *, where: str | None = None)
                 same = False
             if not same:
                 raise ConfigError(f"{where}: option {key!r} was removed; it is now always {fixed!r} "
-                                  f"(got {value!r}): drop it from the config")
+                                  f"(got {value!r}): drop it")
             logger.warning("%s: option %r was removed (it is always %r); ignoring it", where, key, fixed)
         else:
             raise ConfigError(f"{where}: unknown config key {key!r}{_suggest(key, [*specs, *names])}")
@@ -380,8 +392,9 @@ def add_config_arguments(
             continue
         tp, _optional = _unwrap_optional(spec.type)
         help_text = _field_help(spec.field)
-        if flag not in required:
-            help_text = f"{help_text} (default: {_jsonable(spec.default)})".strip()
+        if flag not in required and "default:" not in help_text:
+            shown = _jsonable(spec.default)
+            help_text = f"{help_text} (default: {shown if shown != '' else repr(shown)})".strip()
         help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
         kwargs: dict[str, Any] = {"dest": flag, "help": help_text, "default": argparse.SUPPRESS}
         origin = get_origin(tp)
@@ -405,11 +418,13 @@ def add_config_arguments(
         if spec.group not in groups:
             groups[spec.group] = parser.add_argument_group(spec.group) if spec.group else parser
         groups[spec.group].add_argument(f"--{flag}", **kwargs)
+    for flag in removed_options(cls):  # accepted (with a warning when it holds its fixed value), not listed
+        parser.add_argument(f"--{flag}", dest=flag, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 def config_from_args(cls: type[C], args: argparse.Namespace, **overrides: Any) -> C:
     """Build ``cls`` from the flags that were given on the command line (plus ``overrides``)."""
-    specs = config_flags(cls)
-    data = {k: v for k, v in vars(args).items() if k in specs}
+    names = set(config_flags(cls)) | set(removed_options(cls))
+    data = {k: v for k, v in vars(args).items() if k in names}
     data.update(overrides)
     return config_from_dict(cls, data)

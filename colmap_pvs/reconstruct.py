@@ -38,6 +38,7 @@ from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256
 from .io.images import check_image_file, check_image_format
+from .io.workspace import set_aside_foreign_output
 from .stereo.config import StereoConfig
 
 logger = logging.getLogger(__name__)
@@ -239,16 +240,33 @@ def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
     return {"count": len(names), "sha256": digest.hexdigest()}
 
 
-def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
+#: Stereo flags that change no map (where and how fast it runs, what else it writes): a rerun that
+#: changes only these resumes.
+STEREO_RUN_ONLY = ("workspace_path", "checkpoint", "device", "threads", "overwrite", "previews", "backend")
+#: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
+LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
 
+
+def _remove_stale(path: Path) -> None:
+    """Remove an output of ours that new maps make stale; one COLMAP or the user wrote under the same
+    name (``dense/fused.ply``, ``meshed-poisson.ply``) is kept as ``.bak`` instead."""
+    if set_aside_foreign_output(path) is None:
+        path.unlink(missing_ok=True)
+
+
+def _stereo_settings(stereo: StereoConfig) -> dict:
+    """The stereo settings the maps depend on, by flag name (the checkpoint by its content, aside)."""
+    return {k: v for k, v in config_to_flags(stereo).items()
+            if k not in STEREO_RUN_ONLY and not k.startswith("ray_")}
+
+
+def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
-        # what the stereo maps depend on (the checkpoint by its content, above)
-        "stereo": {k: v for k, v in config_to_flags(config.stereo).items()
-                   if k not in ("workspace_path", "overwrite", "previews", "checkpoint")},
+        "stereo": _stereo_settings(config.stereo),
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 
@@ -257,7 +275,7 @@ def _describe_change(key: str, old, new) -> str:
     if key == "photos":
         return f"the photos ({old.get('count')} -> {new.get('count')} files; names or sizes changed)"
     if key == "stereo":
-        changed = [f"--{k} {old.get(k)} -> {v}" for k, v in new.items() if old.get(k) != v]
+        changed = [f"--{k} {old.get(k)} -> {v}" for k, v in new.items() if k in old and old[k] != v]
         return "stereo settings " + ", ".join(changed)
     if key == "checkpoint_sha256":
         return f"the checkpoint's content (sha256 {str(old)[:12]} -> {str(new)[:12]})"
@@ -271,8 +289,16 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
         recorded = prog.recorded(stage)
         if recorded is None:
             continue
+        if stage == "stereo" and "stereo" not in recorded:  # an older marker: its flat stereo settings
+            recorded = {**recorded, "stereo": {k: recorded[k] for k in LEGACY_STEREO_KEYS
+                                               if k in recorded}}
         for key, new in prog.settings[stage].items():
-            if key in recorded and recorded[key] != new:
+            old = recorded.get(key)
+            if key == "stereo" and isinstance(old, dict):  # a setting it did not record: not changed
+                differs = any(k in old and old[k] != v for k, v in new.items())
+            else:
+                differs = key in recorded and old != new
+            if differs:
                 changes.append((stage, _describe_change(key, recorded[key], new)))
     if changes:
         first = min(STAGES.index(stage) for stage, _ in changes)
@@ -538,7 +564,7 @@ def _reconstruct(
     else:
         prog.start("stereo")
         for stale in (fused, vis_path_of(fused), meshed):
-            stale.unlink(missing_ok=True)
+            _remove_stale(stale)
         prog.unmark("fusion", "mesh")
         st = run_stereo(replace_config(config.stereo, workspace_path=dense,
                                        overwrite="stereo" in prog.overwrite))
@@ -553,7 +579,7 @@ def _reconstruct(
         prog.skip("fusion", f"{fused} exists")
     else:
         prog.start("fusion")
-        meshed.unlink(missing_ok=True)
+        _remove_stale(meshed)
         prog.unmark("mesh")
         fuse(FuseConfig(workspace_path=dense, output_path=fused, method=config.fusion_method))
         prog.mark("fusion")

@@ -80,3 +80,25 @@ def test_config_file_with_nested_values_and_flag_override(tmp_path):
 def test_library_errors_become_exit_code_1(tmp_path, capsys):
     assert main(["select-views", "--workspace_path", str(tmp_path / "nowhere")]) == 1
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_removed_flags_are_accepted_with_their_value_and_abbreviations_are_not(capsys, tmp_path):
+    ws = str(tmp_path / "missing_ws")
+    # the removed option with its fixed value: accepted (a warning), the run then fails on the workspace
+    assert main(["stereo", "--workspace_path", ws, "--prior_blend_window", "7"]) == 1
+    assert "workspace folder" in capsys.readouterr().err
+    assert main(["stereo", "--workspace_path", ws, "--prior_blend_window", "5"]) == 1
+    assert "'prior_blend_window' was removed; it is now always 7" in capsys.readouterr().err
+    assert main(["reconstruct", "--image_path", ws, "--workspace_path", ws,
+                 "--geom_max_normal_error", "90"]) == 1
+    assert "geom_max_normal_error" in capsys.readouterr().err
+    assert main(["stereo", "--workspace_path", ws, "--num_view", "3"]) == 2  # no silent abbreviation
+    assert "did you mean --num_views?" in capsys.readouterr().err
+
+
+def test_config_file_errors_name_the_file(tmp_path, capsys):
+    path = tmp_path / "stereo.json"
+    path.write_text(json.dumps({"geometric": {"min_consistent": "abc"}}))
+    assert main(["stereo", "--workspace_path", str(tmp_path), "--config_file", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and "min_consistent" in err

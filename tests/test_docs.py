@@ -4,8 +4,11 @@ guide whose test command is CI's, and the model card is a model card."""
 from __future__ import annotations
 
 import ast
+import importlib
 import re
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,3 +52,10 @@ def test_model_card_is_a_model_card():
     for section in ("intended use", "training data", "evaluation", "limitations"):
         assert any(section in h for h in headings), section
     assert not re.search(r"\bstop \d+\b", card, flags=re.IGNORECASE)
+
+
+@pytest.mark.parametrize("script", sorted(p.stem for p in (ROOT / "benchmarks").glob("*.py")))
+def test_every_benchmark_script_imports(script, monkeypatch):
+    """A benchmark that imports a moved or renamed name fails here, not months later."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    importlib.import_module(script)

@@ -250,7 +250,8 @@ def test_metrics_json_is_written_atomically_with_config_version_and_checkpoint_h
 
 
 def test_stereo_record_name_matches_stereo_module():
-    stereo = pytest.importorskip("colmap_pvs.stereo", exc_type=ImportError)
+    import colmap_pvs.stereo as stereo
+
     assert stereo.CONFIG_FILENAME == STEREO_RECORD
 
 

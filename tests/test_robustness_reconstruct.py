@@ -253,9 +253,31 @@ def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_rec
     previews = out / "dense" / "stereo" / "previews"
     assert not previews.exists()
     # every output but the record of the last run's resolved settings
-    before = {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file() and p.suffix != ".json"}
+    before = {p: p.read_bytes() for p in (out / "dense").rglob("*")
+              if p.is_file() and p.name != "colmap_pvs_stereo.json"}
     result = reconstruct(reconstruct_config(**flags, previews=True))
     assert {"undistort", "stereo", "fusion", "mesh"} <= set(result.resumed)
     assert result.previews_path == previews and len(list(previews.glob("*.depth.png"))) >= 5
     changed = sorted(str(p.relative_to(out)) for p, data in before.items() if p.read_bytes() != data)
     assert not changed, changed
+
+
+def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checked(analytic_scene, tmp_path):
+    """Flags that change no map (threads, device, backend, the Ray settings, previews) resume a finished
+    run; a marker of an older colmap-pvs (flat stereo settings) is still compared with the new ones."""
+    ws = analytic_scene["root"]
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
+                 num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    reconstruct(reconstruct_config(**flags))
+    rerun = reconstruct(reconstruct_config(**flags, threads=1, device="cpu", ray_workers=3, previews=False))
+    assert {"undistort", "stereo", "fusion", "mesh"} <= set(rerun.resumed)
+    marker = out / ".colmap_pvs" / "stereo.done"
+    payload = json.loads(marker.read_text())
+    payload["settings"] = {"max_image_size": 64, "num_views": 3, "network_scale": 0.8,
+                           "checkpoint_sha256": payload["settings"]["checkpoint_sha256"]}
+    marker.write_text(json.dumps(payload))
+    assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed  # the same settings
+    with pytest.raises(ConfigError, match=r"--num_views 3 -> 4"):
+        reconstruct(reconstruct_config(**{**flags, "num_views": 4}))

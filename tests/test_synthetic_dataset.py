@@ -230,10 +230,9 @@ def test_make_synthetic_workspace_loads_and_sparse_points_lie_on_gt_surfaces(tmp
     meta = json.loads((out / "gt" / "scene.json").read_text())
     assert meta["image_names"] == names and meta["width"] == 96
 
-    sparse = pytest.importorskip("colmap_pvs.io.sparse")
-    if not hasattr(sparse, "read_sparse_model"):
-        pytest.skip("colmap_pvs.io.sparse.read_sparse_model is not available")
-    model = sparse.read_sparse_model(out / "sparse")
+    from colmap_pvs.io.sparse import read_sparse_model
+
+    model = read_sparse_model(out / "sparse")
     assert sorted(model.image_ids_by_name) == names
     assert len(model.points) == summary["num_points"] > 50
     checked = 0
