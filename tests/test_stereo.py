@@ -826,3 +826,34 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
             assert stereo_outputs.preview_path(load_workspace(ws)[0], name, stage).is_file()
         assert (stereo / "previews" / f"{name}.normal.png").is_file()
         assert list((stereo / "previews").glob(f"{name}.visibility.*.png"))
+
+
+def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
+    """Depth and normal maps in the workspace that colmap-pvs did not write (COLMAP's patch_match_stereo
+    output: no provenance) are kept as ``NAME.KIND.bin.bak`` before ours replace them, with one WARNING
+    for the workspace; our own maps are replaced silently on a rerun."""
+    from colmap_pvs.io.maps import write_depth_map, write_normal_map
+
+    ws = _copy(synthetic_ws, tmp_path)
+    names = sorted(p.name for p in (ws / "images").iterdir())
+    maps = ws / "stereo"
+    for name in names:
+        for kind in ("photometric", "geometric"):
+            write_depth_map(maps / "depth_maps" / f"{name}.{kind}.bin", np.full((5, 7), 2.0, np.float32))
+            write_normal_map(maps / "normal_maps" / f"{name}.{kind}.bin",
+                             np.tile(np.array([0, 0, -1], np.float32), (5, 7, 1)))
+    theirs = {p: p.read_bytes() for p in maps.rglob("*.bin")}
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+                        geom_min_consistent=1)
+    with caplog.at_level("WARNING", logger="colmap_pvs"):
+        res = run_stereo(cfg)
+    assert sorted(res.processed) == names
+    for path, data in theirs.items():
+        assert path.with_name(path.name + ".bak").read_bytes() == data
+        if "depth_maps" in path.parts:  # ours in their place
+            assert read_depth_map(path).shape == (36, 48)
+    assert sum("did not write" in r.getMessage() for r in caplog.records) == 1
+    caplog.clear()
+    run_stereo(replace_config(cfg, overwrite=True))
+    assert not list(maps.rglob("*.bak.bak")) and not any("did not write" in r.getMessage()
+                                                          for r in caplog.records)

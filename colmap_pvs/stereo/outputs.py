@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
+import os
+import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -34,6 +37,8 @@ from .config import FORMAT_VERSIONS, Stage, pass_settings
 
 if TYPE_CHECKING:
     from .context import StereoContext
+
+logger = logging.getLogger(__name__)
 
 
 def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
@@ -113,6 +118,7 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
     names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
     t0 = time.perf_counter()
+    _set_aside_colmaps_maps(ws, name, stage)
     # The old depth goes first: new provenance beside an old depth would look done after a crash.
     ws.depth_map_path(name, stage).unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
@@ -129,6 +135,29 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
         t0 = time.perf_counter()
         write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
         timings["previews"] = time.perf_counter() - t0
+
+
+_warned_foreign: set[Path] = set()  # the stereo folders whose COLMAP maps were reported this process
+_warned_lock = threading.Lock()
+
+
+def _set_aside_colmaps_maps(ws: Workspace, name: str, stage: Stage) -> None:
+    """Depth and normal maps of ``name`` that colmap-pvs did not write (no provenance: COLMAP's own
+    ``patch_match_stereo`` output, hours of GPU time) are renamed to ``*.bin.bak`` before ours replace
+    them; one WARNING per workspace says so (each file at DEBUG)."""
+    depth = ws.depth_map_path(name, stage)
+    if not depth.is_file() or provenance_path(ws, name, stage).is_file():
+        return
+    for path in (depth, ws.normal_map_path(name, stage)):
+        if path.is_file():
+            os.replace(path, path.with_name(path.name + ".bak"))
+            logger.debug("kept %s as %s.bak", path, path.name)
+    with _warned_lock:
+        first = ws.stereo_dir not in _warned_foreign
+        _warned_foreign.add(ws.stereo_dir)
+    if first:
+        logger.warning("%s holds depth and normal maps colmap-pvs did not write (COLMAP's?), e.g. %s: each "
+                       "is kept as NAME.bin.bak beside ours", ws.stereo_dir, depth.name)
 
 
 def preview_path(ws: Workspace, name: str, stage: Stage) -> Path:
