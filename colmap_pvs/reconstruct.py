@@ -334,8 +334,9 @@ def _check_photos(folder: Path, names: list[str]) -> None:
 
 
 def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[str, str]]:
-    """The photos an image decoder recognises, and the others (named, with the reason), each logged as
-    a skipped photo: COLMAP would silently fail to read them and report them as not registered."""
+    """The photos an image decoder recognises, and the others (named, with the reason), logged as
+    skipped photos in one warning: COLMAP would silently fail to read them and report them as not
+    registered."""
     kept: list[str] = []
     skipped: dict[str, str] = {}
     for name in names:
@@ -343,14 +344,12 @@ def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[st
             check_image_format(folder / name)
         except WorkspaceError:
             skipped[name] = "not a readable image (no image decoder recognises its content)"
-            logger.warning(
-                "reconstruct: skipping %s: %s; remove it from %s or replace it with a photo",
-                name,
-                skipped[name],
-                folder,
-            )
             continue
         kept.append(name)
+    if skipped:
+        listed = ", ".join(list(skipped)[:3]) + (f" and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+        logger.warning("reconstruct: skipping %d file(s) that are no readable image: %s; remove them from %s "
+                       "or replace them with photos", len(skipped), listed, folder)
     return kept, skipped
 
 

@@ -193,7 +193,7 @@ def test_unreadable_photo_is_skipped_by_name_before_sfm(tmp_path, caplog):
     assert "not a readable image" in result.skipped_photos["IMG_0001.jpg"]
     messages = [(r.levelname, r.getMessage()) for r in caplog.records]
     warning = next(i for i, (level, msg) in enumerate(messages)
-                   if level == "WARNING" and "skipping IMG_0001.jpg: not a readable image" in msg)
+                   if level == "WARNING" and "no readable image: IMG_0001.jpg" in msg)
     features = next(i for i, (_, msg) in enumerate(messages) if "features ..." in msg)
     assert warning < features  # reported before SfM starts
     import sqlite3
