@@ -15,7 +15,7 @@ def report_stereo(result) -> str:
         f"computed: {len(result.processed)}  already done: {len(result.already_done)}  "
         f"skipped: {len(result.skipped)}  seconds/image: {result.seconds_per_image:.2f}",
     ]
-    if getattr(result, "pass_seconds", {}).get("geometric") is not None:  # the second pass
+    if result.pass_seconds.get("geometric") is not None:  # the second pass
         lines.append(
             f"geometric pass: computed: {len(result.geometric_processed)}  already done: "
             f"{len(result.geometric_done)}  skipped: {len(result.geometric_skipped)}  "

@@ -220,8 +220,8 @@ class StereoWorker:
             # Sources that are not references get the first pass too when a later pass reads them.
             "auxiliary": list(auxiliary_references(ctx)) if len(passes) > 1 else [],
             "checkpoint": str(ctx.checkpoint_path),
-            "checkpoint_sha256": getattr(ctx, "checkpoint_sha256", None),
-            "model_config": getattr(ctx.net, "config", None),
+            "checkpoint_sha256": ctx.checkpoint_sha256,
+            "model_config": ctx.net.config,
         }
 
     def process(self, name: str, stage: str):
@@ -468,10 +468,10 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
     result = DistributedStereoResult(workspace=ws, wall_seconds=wall)
     refs, aux = plan["references"], set(plan["auxiliary"])
     lists = {passes[0]: (result.processed, result.already_done, result.skipped)}
-    if len(passes) > 1 and hasattr(result, "geometric_processed"):  # the two-pass StereoResult
+    if len(passes) > 1:
         lists[passes[1]] = (result.geometric_processed, result.geometric_done, result.geometric_skipped)
         result.auxiliary = list(plan["auxiliary"])
-    if len(passes) > 2 and hasattr(result, "filled_processed"):
+    if len(passes) > 2:
         lists[passes[2]] = (result.filled_processed, result.filled_done, result.filled_skipped)
     seconds = [out.seconds for out in outcomes.values() if out.status == "computed"]
     computed = {name for (name, _stage), out in outcomes.items()
@@ -528,9 +528,8 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
         ws = Workspace(driver.wcfg.workspace_path)
         if not ws.stereo_dir.is_dir():
             raise WorkspaceError(f"the Ray driver cannot see {str(ws.stereo_dir)!r}; {SHARED_FS_HINT}")
-        extra = {"checkpoint_sha256": plan["checkpoint_sha256"]} if plan["checkpoint_sha256"] else {}
         save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=plan["checkpoint"],
-                    model_config=plan["model_config"], **extra)
+                    checkpoint_sha256=plan["checkpoint_sha256"], model_config=plan["model_config"])
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
         graph = run_task_graph(config, passes, plan)
