@@ -245,7 +245,7 @@ def flags_to_dict(cls: type, flags: dict[str, Any], *, where: str | None = None)
     """The nested mapping of ``cls`` that the flag values ``flags`` (flag name -> value) set.
 
     Keys that are field names of ``cls`` (nested configs as mappings or instances) pass through;
-    a key in ``cls.REMOVED_OPTIONS`` is dropped with a warning when it holds the value that option
+    a key in :func:`removed_options` is dropped with a warning when it holds the value that option
     now has, else refused.
     """
     where = where or cls.__name__
