@@ -203,7 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bool) -> None:
     """The flags of ``cmd``'s config (one group per nested config) on its parser ``p``."""
     p.set_defaults(command=cmd.name)
-    # a short usage line; the flags follow, grouped, each with its default
+    # a short usage line; the flags follow, grouped, one line each with its default
+    p.formatter_class = lambda prog: argparse.HelpFormatter(prog, max_help_position=42, width=160)
     p.usage = " ".join(["%(prog)s", *(f"--{r} {r.upper()}" for r in cmd.required), "[options]",
                         *(f"[{n.upper()}]" for n in cmd.positional)])
     if cmd.config is not None:
@@ -213,8 +214,7 @@ def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bo
             dest="_config_file",
             default=None,
             metavar="JSON",
-            help="JSON file of config values, nested ones included (flags given on the command line "
-            "override it); a saved resolved config (e.g. a run's config.json) works too",
+            help="JSON of config values (nested or by flag name; a run's saved config); flags override it",
         )
     for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
         p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),

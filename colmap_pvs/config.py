@@ -391,16 +391,19 @@ def add_config_arguments(
         if flag in exclude:
             continue
         tp, _optional = _unwrap_optional(spec.type)
+        origin = get_origin(tp)
         help_text = _field_help(spec.field)
+        long_choices = origin is Literal and len(",".join(map(str, get_args(tp)))) > 20
+        if long_choices:  # listed in the help, so that every flag keeps its help on its own line
+            help_text = f"{help_text}: {', '.join(map(str, get_args(tp)))}"
         if flag not in required and "default:" not in help_text:
             shown = _jsonable(spec.default)
             help_text = f"{help_text} (default: {shown if shown != '' else repr(shown)})".strip()
         help_text = help_text.replace("%", "%%")  # argparse %-formats help texts
         kwargs: dict[str, Any] = {"dest": flag, "help": help_text, "default": argparse.SUPPRESS}
-        origin = get_origin(tp)
         if origin is Literal:
             kwargs["choices"] = list(get_args(tp))
-            kwargs["metavar"] = "{" + ",".join(map(str, get_args(tp))) + "}"
+            kwargs["metavar"] = "MODE" if long_choices else "{" + ",".join(map(str, get_args(tp))) + "}"
         elif origin is tuple:
             kwargs["nargs"] = "+"
             kwargs["metavar"] = "V"
@@ -411,6 +414,7 @@ def add_config_arguments(
             kwargs["const"] = True
         elif tp in (int, float, str, Path):
             kwargs["type"] = str if tp is Path else tp
+            kwargs["metavar"] = {int: "N", float: "X", str: "TEXT", Path: "PATH"}[tp]
         else:
             continue
         if flag in required:

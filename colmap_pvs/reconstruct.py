@@ -104,14 +104,13 @@ class ReconstructConfig:
     overwrite: bool = field(
         default=False,
         metadata={
-            "help": "recompute instead of resuming: the stages whose settings changed and those after them, "
-            "or every stage when no setting changed"
+            "help": "recompute the stages whose settings changed and those after (none changed: all)"
         },
     )
     stop_after: Literal["features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh"] | None = (
         field(
             default=None,
-            metadata={"help": "stop after this stage (run the rest later: finished stages are reused)"},
+            metadata={"help": "stop after this stage (a rerun goes on)"},
         )
     )
     stereo: StereoConfig = field(

@@ -56,25 +56,17 @@ class PhotometricConfig:
     network_scale: float = field(
         default=0.8,
         metadata={
-            "help": "run the network at this multiple of the map size (0.25-2) and bring its depth "
-            "back to the map size: image-guided upsampling below 1, nearest sampling above 1 (the "
-            "image is read at that size from its original, so up to its full resolution with real "
-            "detail: thin structures, at about scale^2 the time and memory); maps keep max_image_size"
+            "help": "network size as a multiple of the map's (0.25-2); 1.5 for thin structures, slower"
         },
     )
     network_min_size: int = field(
         default=400,
-        metadata={
-            "help": "network_scale never takes the network's longest side below this (px), nor below "
-            "the map's: small images keep their detail"
-        },
+        metadata={"help": "network_scale never takes the network's longest side below this (px)"},
     )
     min_confidence: float = field(
         default=0.0,
         metadata={
-            "help": "pixels with confidence (the network's probability mass times its agreement with "
-            "the sparse prior, see prior_agreement_scale) below this are set invalid; 0 keeps the "
-            "maps dense and leaves the filtering to the geometric pass"
+            "help": "drop network pixels below this confidence (0: keep all; the geometric pass filters)"
         },
     )
     sparse_guidance: Literal["checkpoint", "on", "off"] = field(
@@ -84,23 +76,19 @@ class PhotometricConfig:
     sparse_prior: Literal["checkpoint", "on", "off"] = field(
         default="checkpoint",
         metadata={
-            "help": "centre the coarse depth hypotheses on the interpolated sparse points "
-            "(off: the image's global depth range everywhere)"
+            "help": "centre the coarse depth hypotheses on the sparse points (off: global depth range)"
         },
     )
     prior_blend_texture: float = field(
         default=0.01,
         metadata={
-            "help": "where the image's grey-level standard deviation (0-1 scale, over 7x7 map "
-            "pixels) is below this, the depth moves towards the sparse prior in log "
-            "depth, all the way where the image is flat (0 = off)"
+            "help": "in flat image regions (grey std below this) move the depth to the sparse prior (0: off)"
         },
     )
     prior_agreement_scale: float = field(
         default=0.05,
         metadata={
-            "help": "the confidence is multiplied by exp(-|log(d / prior)| / this), the network's "
-            "agreement with the sparse prior (0 = the network's probability mass alone)"
+            "help": "confidence times exp(-|log(d / prior)| / this): agreement with the prior (0: off)"
         },
     )
 
@@ -123,8 +111,7 @@ class GeometricConfig:
     enabled: bool = field(
         default=True,
         metadata={"flag": "geom_consistency", **_OFF,
-                  "help": "run the geometric pass (writes *.geometric.bin); off: photometric maps only "
-                  "(COLMAP's PatchMatchStereo.geom_consistency)"},
+                  "help": "run the geometric pass (*.geometric.bin; COLMAP's geom_consistency)"},
     )
     min_consistent: int = field(
         default=2, metadata={"help": "a pixel must agree with at least this many sources"}
@@ -138,19 +125,11 @@ class GeometricConfig:
     )
     min_triangulation_angle: float = field(
         default=3.0,
-        metadata={
-            "help": "a source confirms a pixel only where the rays from its centre and the "
-            "reference's meet at the pixel's point at this angle (degrees) or more (COLMAP's "
-            "filter_min_triangulation_angle; 0: any)"
-        },
+        metadata={"help": "a source confirms a pixel only from this angle (degrees) or more"},
     )
     num_sources: int = field(
         default=10,
-        metadata={
-            "help": "check against up to this many sources with photometric maps: the network's "
-            "sources, then the next best by view score (0: the network's sources only; a network "
-            "source that is not a candidate view of the reference takes no slot)"
-        },
+        metadata={"help": "check against up to this many views with maps: the sources, then the next best"},
     )
     average_depth: bool = field(
         default=True, metadata={"help": "average the depth with the agreeing sources' reprojected depths"},
@@ -160,32 +139,21 @@ class GeometricConfig:
     )
     reestimate: bool = field(
         default=False,
-        metadata={
-            "help": "run the network again on each reference with the depth its sources' photometric "
-            "maps agree on as dense hints, then check that re-estimate (more pixels kept, one more "
-            "network run per image)"
-        },
+        metadata={"help": "run the network again with the agreed depth as hints and check that (slower)"},
     )
     seed_min_consistent: int = field(
         default=3,
-        metadata={
-            "help": "a pixel seeds the dense completion (stereo/seed_maps/NAME.bin) where at least "
-            "this many sources agree with it within geom_seed_depth_error (at any angle) and enough of "
-            "its neighbours do for a normal; the completion keeps only the seeds as they are"
-        },
+        metadata={"help": "sources that must agree with a pixel for it to seed the completion"},
     )
     seed_depth_error: float = field(
         default=0.025,
-        metadata={"help": "max relative depth error of the sources that make a seed "
-                  "(see geom_seed_min_consistent)"},
+        metadata={"help": "max relative depth error of the sources that make a seed"},
     )
     splat_min_sources: int = field(
         default=3,
         metadata={
             "seeds": False,  # changes the geometric maps, not the seeds
-            "help": "a pixel the check drops is kept with its sources' confirmed depth where at least "
-            "this many of the checked sources' seed maps, projected into it, agree within 3 % "
-            "(their median; 0: off)",
+            "help": "keep a dropped pixel where this many sources' seeds agree on it (0: off)",
         },
     )
 
@@ -211,9 +179,7 @@ class CompletionConfig:
         default=True,
         metadata={
             "flag": "geom_fill", **_OFF,
-            "help": "third pass, after the geometric one: a dense completion of each geometric map, "
-            "NAME.filled.bin in stereo/depth_maps and stereo/confidence_maps: dropped pixels from the "
-            "sources' kept pixels, then a local plane fit (COLMAP's fusion never reads it)",
+            "help": "dense completion of each geometric map (*.filled.bin; COLMAP's fusion never reads it)",
         },
     )
     min_sources: int = field(
@@ -221,10 +187,7 @@ class CompletionConfig:
     )
     segments: bool = field(
         default=True,
-        metadata={
-            "help": "a dropped pixel takes the robust plane of the known pixels of its image segment "
-            "(the region between image edges) where that plane fits them"
-        },
+        metadata={"help": "fill a dropped pixel from the robust plane of its image segment where it fits"},
     )
 
     def __post_init__(self) -> None:
@@ -239,8 +202,7 @@ class AdaptationConfig:
     steps: int = field(
         default=0,
         metadata={
-            "help": "fine-tune a copy of the network for this many steps on the workspace's own "
-            "images (self-supervised) before inference; 0 = off"
+            "help": "test-time adaptation: fine-tune on the workspace's own images for N steps (0: off)"
         },
     )
     max_seconds: float = field(default=0.0, metadata={"help": "time limit in seconds (0 = none)"})
@@ -248,9 +210,7 @@ class AdaptationConfig:
     pseudo_labels: Literal["none", "geometric", "filled"] = field(
         default="none",
         metadata={
-            "help": "also fit the workspace's own maps of this kind as dense pseudo-labels "
-            "(self-training): stereo first runs with the base checkpoint, adapts on its 'geometric' or "
-            "'filled' maps, then runs again with the adapted weights; 'none': off"
+            "help": "also fit the workspace's maps of this kind (self-training: stereo runs twice)"
         },
     )
 
@@ -279,8 +239,7 @@ class RayConfig:
     )
     task_timeout: float = field(
         default=0.0,
-        metadata={"help": "seconds after which a reference's worker is killed and the reference retried; "
-                  "0: no limit"},
+        metadata={"help": "seconds after which a reference's worker is killed and it is retried (0: none)"},
     )
 
     def __post_init__(self) -> None:
