@@ -44,6 +44,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "CFG_BACKUP_SUFFIX",
     "WRITTEN_RECORD",
+    "move_aside",
     "record_written_output",
     "set_aside_foreign_output",
     "MAP_KINDS",
@@ -416,11 +417,11 @@ def _read_written_record(folder: Path) -> dict[str, str]:
     return {str(k): str(v) for k, v in record.items()} if isinstance(record, dict) else {}
 
 
-def cfg_backup_path(path: str | os.PathLike, content: bytes) -> tuple[Path, bool]:
+def cfg_backup_path(path: str | os.PathLike, content: bytes | None = None) -> tuple[Path, bool]:
     """Where the backup of ``path`` holding ``content`` goes: ``(backup, already_there)``.
 
-    An existing backup with the same content is reused; one with other content is never
-    overwritten (the next free numbered name is taken instead).
+    An existing backup with the same content is reused (``content=None``: never compared); one with
+    other content is never overwritten (the next free numbered name is taken instead).
     """
     path = Path(path)
     number = 1
@@ -430,7 +431,7 @@ def cfg_backup_path(path: str | os.PathLike, content: bytes) -> tuple[Path, bool
         if not os.path.lexists(backup):
             return backup, False
         try:
-            if backup.is_file() and backup.read_bytes() == content:
+            if content is not None and backup.is_file() and backup.read_bytes() == content:
                 return backup, True
         except OSError:
             pass
@@ -492,20 +493,21 @@ def set_aside_foreign_output(path: str | os.PathLike) -> Path | None:
         return None
     if _read_written_record(path.parent).get(path.name) == file_sha256(path):
         return None
-    number = 1
-    while True:
-        suffix = CFG_BACKUP_SUFFIX if number == 1 else f"{CFG_BACKUP_SUFFIX}.{number}"
-        backup = path.with_name(path.name + suffix)
-        if not os.path.lexists(backup):
-            break
-        number += 1
+    backup = move_aside(path)
+    logger.warning("%s was not written by colmap-pvs (COLMAP's or yours): moved it to %s", path, backup)
+    return backup
+
+
+def move_aside(path: str | os.PathLike) -> Path:
+    """Rename ``path`` to its first free backup name (:func:`cfg_backup_path`); returns the backup."""
+    path = Path(path)
+    backup, _ = cfg_backup_path(path)
     try:
         os.replace(path, backup)
     except OSError as exc:
         raise OutputError(
             f"cannot move {str(path)!r} aside before replacing it: {exc.strerror or exc}"
         ) from None
-    logger.warning("%s was not written by colmap-pvs (COLMAP's or yours): moved it to %s", path, backup)
     return backup
 
 

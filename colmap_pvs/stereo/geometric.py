@@ -36,6 +36,7 @@ from .outputs import (
     geometric_files_exist,
     is_current,
     read_provenance,
+    read_visibility,
     seed_map_path,
     seed_provenance_path,
     stage_settings,
@@ -181,17 +182,11 @@ def _check_kwargs(ctx: StereoContext) -> dict:
 def _load_check(ctx: StereoContext, name: str, setup: CheckSetup):
     """``(ref, srcs, vis)``: the photometric maps of ``name`` and of its checked sources, and the
     learned visibility of those sources (``None`` without a visibility map)."""
-    ws = ctx.workspace
     ref = load_maps(ctx, name)
     srcs = [load_maps(ctx, s) for s in setup.sources]
-    h, w = ref.depth.shape
-    vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
-    vis = None
-    if vis_path.is_file():
-        coarse = read_array(vis_path)
-        coarse = coarse[..., None] if coarse.ndim == 2 else coarse
-        vis = _check_visibility(coarse.transpose(2, 0, 1), list(setup.prov.get("sources", [])), setup.sources,
-                                (h, w))
+    coarse = read_visibility(ctx.workspace, name)
+    vis = None if coarse is None else _check_visibility(coarse, list(setup.prov.get("sources", [])),
+                                                       setup.sources, ref.depth.shape)
     return ref, srcs, vis
 
 

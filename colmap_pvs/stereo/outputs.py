@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import threading
 import time
 from pathlib import Path
@@ -32,7 +31,7 @@ from ..io.maps import (
     write_depth_map,
     write_normal_map,
 )
-from ..io.workspace import Workspace
+from ..io.workspace import Workspace, move_aside
 from .config import FORMAT_VERSIONS, Stage, pass_settings
 
 if TYPE_CHECKING:
@@ -45,6 +44,21 @@ def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
     """``stereo/provenance/NAME.STAGE.json``: what produced that pass's maps of ``name``."""
     ws.depth_map_path(name, stage)  # validates name and stage
     return ws.stereo_dir / "provenance" / f"{name}.{stage}.json"
+
+
+def visibility_map_path(ws: Workspace, name: str) -> Path:
+    """``stereo/visibility_maps/NAME.bin``: the network's learned visibility of each source."""
+    ws.depth_map_path(name, "photometric")  # validates name
+    return ws.stereo_dir / "visibility_maps" / f"{name}.bin"
+
+
+def read_visibility(ws: Workspace, name: str) -> np.ndarray | None:
+    """``[S, h/4, w/4]`` learned visibility of ``name``'s network sources (``None`` without a map)."""
+    path = visibility_map_path(ws, name)
+    if not path.is_file():
+        return None
+    coarse = read_array(path)
+    return (coarse[..., None] if coarse.ndim == 2 else coarse).transpose(2, 0, 1)
 
 
 def seed_map_path(ws: Workspace, name: str) -> Path:
@@ -123,7 +137,7 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
     ws.depth_map_path(name, stage).unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
     if vis is not None:
-        write_array(ws.stereo_dir / "visibility_maps" / f"{name}.bin",
+        write_array(visibility_map_path(ws, name),
                     np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
     if seeds is not None:
         write_seeds(ws, name, seeds, seed_fingerprint)
@@ -150,8 +164,7 @@ def _set_aside_colmaps_maps(ws: Workspace, name: str, stage: Stage) -> None:
         return
     for path in (depth, ws.normal_map_path(name, stage)):
         if path.is_file():
-            os.replace(path, path.with_name(path.name + ".bak"))
-            logger.debug("kept %s as %s.bak", path, path.name)
+            logger.debug("kept %s as %s", path, move_aside(path))
     with _warned_lock:
         first = ws.stereo_dir not in _warned_foreign
         _warned_foreign.add(ws.stereo_dir)
@@ -201,12 +214,10 @@ def write_missing_previews(ws: Workspace, name: str, stage: Stage,
     normals = read_normal_map(ws.normal_map_path(name, stage))
     conf = read_confidence(ws, name, stage, depth.shape)
     vis, sources = None, []
-    vis_path = ws.stereo_dir / "visibility_maps" / f"{name}.bin"
-    if stage == "photometric" and vis_path.is_file():
+    if stage == "photometric":
         sources = (read_provenance(ws, name, stage) or {}).get("sources", [])
-        coarse = read_array(vis_path)
-        coarse = coarse[..., None] if coarse.ndim == 2 else coarse
-        vis = coarse.transpose(2, 0, 1) if coarse.shape[-1] == len(sources) else None
+        vis = read_visibility(ws, name)
+        vis = vis if vis is not None and vis.shape[0] == len(sources) else None
     write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
     return True
 
