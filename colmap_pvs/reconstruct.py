@@ -33,13 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .config import config_to_dict, config_to_flags, replace_config, save_config
+from .config import config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256
 from .io.images import check_image_file, check_image_format
 from .io.workspace import set_aside_foreign_output
-from .stereo.config import StereoConfig
+from .stereo.config import StereoConfig, map_settings
 
 logger = logging.getLogger(__name__)
 
@@ -239,9 +239,6 @@ def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
     return {"count": len(names), "sha256": digest.hexdigest()}
 
 
-#: Stereo flags that change no map (where and how fast it runs, what else it writes): a rerun that
-#: changes only these resumes.
-STEREO_RUN_ONLY = ("workspace_path", "checkpoint", "device", "threads", "overwrite", "previews", "backend")
 #: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
 LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
 
@@ -253,19 +250,13 @@ def _remove_stale(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _stereo_settings(stereo: StereoConfig) -> dict:
-    """The stereo settings the maps depend on, by flag name (the checkpoint by its content, aside)."""
-    return {k: v for k, v in config_to_flags(stereo).items()
-            if k not in STEREO_RUN_ONLY and not k.startswith("ray_")}
-
-
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
-        "stereo": _stereo_settings(config.stereo),
+        "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 

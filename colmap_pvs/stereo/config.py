@@ -8,12 +8,12 @@ setting is one field and nothing else: it is a flag, it is checked, it is in the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import ClassVar, Literal
 
 from ..completion import SEGMENT_MIN_INLIERS, SEGMENT_MIN_PIXELS
-from ..config import check_int_fields, check_range, config_flags
+from ..config import check_int_fields, check_range, config_flags, config_to_flags
 from ..errors import ConfigError
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_default.pt"
@@ -31,6 +31,8 @@ NETWORK_SCALE_MAX = 2.0
 MODEL_SWITCHES = ("sparse_guidance", "sparse_prior")
 
 _OFF = {"provenance": False}  # a pass's on/off switch: not one of the settings its maps depend on
+#: Where and how the step runs, or what else it writes: a setting no map depends on.
+_RUN = {"run_only": True}
 
 #: Window (map pixels, odd) over which ``prior_blend_texture`` measures the image's texture.
 PRIOR_BLEND_WINDOW = 7
@@ -249,33 +251,40 @@ class RayConfig:
             check_range(f"ray_{name}", getattr(self, name), low=low)
 
 
-def _section(cls: type, prefix: str, title: str):
-    return field(default_factory=cls, metadata={"flag_prefix": prefix, "title": title})
+def _section(cls: type, prefix: str, title: str, run_only: bool = False):
+    return field(default_factory=cls,
+                 metadata={"flag_prefix": prefix, "title": title, **(_RUN if run_only else {})})
 
 
 @dataclass(frozen=True)
 class StereoConfig:
     """Settings of the ``stereo`` step (the single source of its defaults and CLI flags)."""
 
-    workspace_path: Path = field(metadata={"help": "COLMAP dense workspace (images/, sparse/, stereo/)"})
-    checkpoint: Path | None = field(
-        default=None, metadata={"help": "model checkpoint (.pt); default: the shipped checkpoint"}
+    workspace_path: Path = field(
+        metadata={"help": "COLMAP dense workspace (images/, sparse/, stereo/)", **_RUN}
     )
-    device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device"})
-    threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
-    overwrite: bool = field(default=False, metadata={"help": "recompute images whose maps already exist"})
+    checkpoint: Path | None = field(  # the maps depend on its content (in the provenance), not its path
+        default=None, metadata={"help": "model checkpoint (.pt); default: the shipped checkpoint", **_RUN}
+    )
+    device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata={"help": "torch device", **_RUN})
+    threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default", **_RUN})
+    overwrite: bool = field(
+        default=False, metadata={"help": "recompute images whose maps already exist", **_RUN}
+    )
     previews: bool = field(
-        default=False, metadata={"help": "write PNG previews of depth, normals, confidence, visibility"}
+        default=False,
+        metadata={"help": "write PNG previews of depth, normals, confidence, visibility", **_RUN},
     )
     min_sources: int = field(default=1, metadata={"help": "skip references with fewer sources"})
     backend: Literal["local", "ray"] = field(
-        default="local", metadata={"help": "local: this process; ray: one task per image on a Ray cluster"}
+        default="local",
+        metadata={"help": "local: this process; ray: one task per image on a Ray cluster", **_RUN},
     )
     photometric: PhotometricConfig = _section(PhotometricConfig, "", "photometric pass (the network)")
     geometric: GeometricConfig = _section(GeometricConfig, "geom_", "geometric pass")
     completion: CompletionConfig = _section(CompletionConfig, "geom_fill_", "dense completion")
     adapt: AdaptationConfig = _section(AdaptationConfig, "adapt_", "test-time adaptation")
-    ray: RayConfig = _section(RayConfig, "ray_", "Ray backend (--backend ray)")
+    ray: RayConfig = _section(RayConfig, "ray_", "Ray backend (--backend ray)", run_only=True)
 
     #: Options that are gone, with the value they now always have (accepted with a warning).
     REMOVED_OPTIONS: ClassVar[dict[str, object]] = {
@@ -296,6 +305,19 @@ class StereoConfig:
             )
 
 
+#: :class:`StereoConfig`'s flags (:func:`~colmap_pvs.config.config_flags`), computed once.
+FLAGS = config_flags(StereoConfig)
+
+
+def map_settings(config: StereoConfig) -> dict:
+    """Flag name -> value of every setting some map depends on (all but the run-only ones; the
+    checkpoint is in each pass's provenance by its content)."""
+    sections = {f.name: f for f in fields(StereoConfig)}
+    return {flag: value for flag, value in config_to_flags(config).items()
+            if not (FLAGS[flag].field.metadata.get("run_only")
+                    or sections[FLAGS[flag].path[0]].metadata.get("run_only"))}
+
+
 def pass_settings(config: StereoConfig, section: str, *, seeds: bool = False) -> dict:
     """The settings of ``config.<section>`` that the pass's maps depend on, by flag name, in field
     order (every field but the pass's on/off switch, and its :data:`FIXED_SETTINGS`; with ``seeds``,
@@ -303,7 +325,7 @@ def pass_settings(config: StereoConfig, section: str, *, seeds: bool = False) ->
     entries = FIXED_SETTINGS.get(section, [])
     fixed = {before: (name, value) for name, before, value in entries if before is not None}
     out = {}
-    for flag, spec in config_flags(StereoConfig).items():
+    for flag, spec in FLAGS.items():
         meta = spec.field.metadata
         if spec.path[0] != section or meta.get("provenance", True) is False:
             continue
