@@ -147,17 +147,22 @@ def test_reconstruct_holds_a_stereo_config_with_stereos_defaults_and_checks(tmp_
             reconstruct_config(image_path=tmp_path, workspace_path=tmp_path / "w", network_scale=bad)
 
 
+def _two_overlapping_photos(images):
+    """Two crops of one random texture, 40 px apart: enough SIFT for the features stage."""
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur((rng.random((400, 500)) * 255).astype(np.uint8), (0, 0), 3)
+    images.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
+    return images
+
+
 def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_path):
     """A lower SIFT peak threshold finds more keypoints; changing it is refused (naming it and the
     features stage), and ``overwrite`` extracts again."""
     import sqlite3
 
-    rng = np.random.default_rng(1)
-    texture = cv2.GaussianBlur((rng.random((400, 500)) * 255).astype(np.uint8), (0, 0), 3)
-    images = tmp_path / "photos"
-    images.mkdir()
-    for i in range(2):
-        cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
+    images = _two_overlapping_photos(tmp_path / "photos")
 
     def keypoints(peak: float, overwrite: bool = False) -> list[int]:
         reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
@@ -178,12 +183,7 @@ def test_sift_peak_threshold_reaches_extraction_and_is_a_features_setting(tmp_pa
 def test_unreadable_photo_is_skipped_by_name_before_sfm(tmp_path, caplog):
     """Issue 41 item 3: a text file named like a photo is named in a WARNING and skipped before SfM,
     not left to COLMAP (which failed to read it and reported it as "not registered")."""
-    rng = np.random.default_rng(1)
-    texture = cv2.GaussianBlur((rng.random((400, 500)) * 255).astype(np.uint8), (0, 0), 3)
-    images = tmp_path / "photos"
-    images.mkdir()
-    for i in range(2):
-        cv2.imwrite(str(images / f"{i}.png"), texture[:, 40 * i : 40 * i + 420])
+    images = _two_overlapping_photos(tmp_path / "photos")
     (images / "IMG_0001.jpg").write_text("not a photo, just some notes\n")
     with caplog.at_level("INFO", logger="colmap_pvs"):
         result = reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out",
