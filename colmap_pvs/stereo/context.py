@@ -72,7 +72,6 @@ class StereoResult:
     adapt_seconds_per_image: float = 0.0
 
 
-
 def choose_references(ws: Workspace, model: SparseModel) -> dict[str, object]:
     """Reference names mapped to their source spec (``None``: automatic selection)."""
     if ws.patch_match_cfg.exists():

@@ -244,8 +244,6 @@ def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: b
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
-
-
 def _remember_seeds(ctx: StereoContext, name: str, fingerprint: str, checked: Checked) -> None:
     ctx.seed_cache[name] = (fingerprint, checked)
     ctx.seed_cache.move_to_end(name)

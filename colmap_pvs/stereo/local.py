@@ -89,8 +89,6 @@ def final_kind(config: StereoConfig) -> Stage:
     return "geometric" if config.geometric.enabled else "photometric"
 
 
-
-
 def run_local(config: StereoConfig) -> StereoResult:
     """:func:`run_stereo` in this process."""
     wall = time.perf_counter()

@@ -53,7 +53,6 @@ def load_stereo_model(config: StereoConfig, device: torch.device):
     return model, path, meta
 
 
-
 def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, device):
     """Run the network on one reference.
 

@@ -120,8 +120,6 @@ def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, ext
     atomic_write_bytes(provenance_path(ws, name, stage), (json.dumps(payload, indent=1) + "\n").encode())
 
 
-
-
 def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
                 depth_range, timings, vis=None, sources=(), seeds=None, seed_fingerprint=None) -> None:
     """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
@@ -157,8 +155,8 @@ _warned_lock = threading.Lock()
 
 def _set_aside_colmaps_maps(ws: Workspace, name: str, stage: Stage) -> None:
     """Depth and normal maps of ``name`` that colmap-pvs did not write (no provenance: COLMAP's own
-    ``patch_match_stereo`` output, hours of GPU time) are renamed to ``*.bin.bak`` before ours replace
-    them; one WARNING per workspace says so (each file at DEBUG)."""
+    ``patch_match_stereo`` output, hours of GPU time) are renamed to ``*.bin.bak`` (``.bak.2``, ... when
+    taken) before ours replace them; one WARNING per workspace says so (each file at DEBUG)."""
     depth = ws.depth_map_path(name, stage)
     if not depth.is_file() or provenance_path(ws, name, stage).is_file():
         return
@@ -222,7 +220,6 @@ def write_missing_previews(ws: Workspace, name: str, stage: Stage,
     return True
 
 
-
 def seed_provenance_path(ws: Workspace, name: str) -> Path:
     """``stereo/seed_maps/NAME.json``: the fingerprint of the check that made ``NAME.bin``."""
     return seed_map_path(ws, name).with_suffix(".json")
@@ -234,8 +231,6 @@ def write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -
     write_array(seed_map_path(ws, name), seeds.astype(np.float32))
     payload = json.dumps({"fingerprint": fingerprint}) + "\n"
     atomic_write_bytes(seed_provenance_path(ws, name), payload.encode())
-
-
 
 
 def read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int]) -> np.ndarray:
@@ -251,8 +246,6 @@ def remove_filled(ws: Workspace, name: str) -> None:
     for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
                  ws.confidence_map_path(name, "filled")):
         path.unlink(missing_ok=True)
-
-
 
 
 def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previews, depth_range,
