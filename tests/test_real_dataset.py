@@ -141,6 +141,24 @@ def test_pseudo_labels_need_the_maps(analytic_scene, tmp_path):
         RealMVSDataset(cfg, cache_dir=tmp_path)
     with pytest.raises(ConfigError, match="pseudo_labels"):
         RealDatasetConfig(roots=(root,), pseudo_labels="photometric")
+    with pytest.raises(WorkspaceError, match="no teacher depth map.*tools/teacher_labels.py"):
+        RealMVSDataset(RealDatasetConfig(roots=(root,), pseudo_labels="teacher", **SMALL), cache_dir=tmp_path)
+
+
+def test_teacher_labels_are_read_like_the_other_pseudo_labels(analytic_scene, tmp_path):
+    """``pseudo_labels="teacher"`` reads ``NAME.teacher.bin``; a reference without one gets no label."""
+    import shutil
+
+    root = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], root)
+    maps = root / "stereo" / "depth_maps"
+    geometric = sorted(maps.glob("*.geometric.bin"))
+    for f in geometric[1:]:
+        f.rename(f.with_name(f.name.replace(".geometric.bin", ".teacher.bin")))
+    ds = RealMVSDataset(RealDatasetConfig(roots=(root,), pseudo_labels="teacher", **SMALL), cache_dir=tmp_path)
+    labelled = {f.name.replace(".geometric.bin", "") for f in geometric[1:]}
+    assert set(ds.scenes[0].pseudo) == labelled & set(ds.scenes[0].references)
+    assert all(p.name.endswith(".teacher.bin") for p in ds.scenes[0].pseudo.values())
 
 
 def test_mixed_dataset_ratio_and_keys(analytic_scene, tmp_path):

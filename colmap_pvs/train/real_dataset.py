@@ -21,11 +21,13 @@ The reference's SfM points inside the crop are split at random: a fraction ``hin
 becomes the network's ``sparse_depth`` hints, the others become ``label_depth``; a point is
 never both in one sample.
 
-Pseudo-labels (self-training, ``pseudo_labels="geometric"`` or ``"filled"``): each root is then a
-dense workspace on which ``colmap-pvs stereo`` has run, and the reference's geometric map
-(``stereo/depth_maps/NAME.geometric.bin``: depths that at least ``geom_min_consistent``
-sources agree with, 0 elsewhere) or its dense completion (``NAME.filled.bin``) is cropped with
-the reference's window (nearest pixel) into ``pseudo_depth``. A reference without such a map gets
+Pseudo-labels (``pseudo_labels="geometric"``, ``"filled"`` or ``"teacher"``): each root is then a
+dense workspace, and the reference's geometric map (``stereo/depth_maps/NAME.geometric.bin``,
+written by ``colmap-pvs stereo``: depths that at least ``geom_min_consistent`` sources agree
+with, 0 elsewhere), its dense completion (``NAME.filled.bin``) or its teacher labels
+(``NAME.teacher.bin``, written by ``tools/teacher_labels.py``: depths where independent teacher
+networks and the multi-view check agree) is cropped with the reference's window (nearest pixel)
+into ``pseudo_depth``. A reference without such a map gets
 an empty ``pseudo_depth``.
 
 Sample dict (``N = 1 + num_best + num_worst``): ``images``, ``photo_images`` ``[N, 3, H, W]``,
@@ -74,7 +76,7 @@ REAL_SAMPLE_KEYS = (
 )
 
 #: Kinds of pseudo-label a real root can provide (``RealDatasetConfig.pseudo_labels``).
-PSEUDO_LABEL_KINDS = ("none", "geometric", "filled")
+PSEUDO_LABEL_KINDS = ("none", "geometric", "filled", "teacher")
 
 
 def _pair(name: str, value) -> tuple[float, float]:
@@ -122,9 +124,9 @@ class RealDatasetConfig:
     pseudo_labels: str = field(
         default="none",
         metadata={
-            "help": "dense pseudo-labels: 'geometric' ('filled') reads each root's "
-            "stereo/depth_maps/NAME.geometric.bin (.filled.bin; roots are workspaces after colmap-pvs "
-            "stereo); 'none' uses the SfM points only"
+            "help": "dense pseudo-labels: 'geometric' ('filled', 'teacher') reads each root's "
+            "stereo/depth_maps/NAME.geometric.bin (.filled.bin after colmap-pvs stereo, .teacher.bin "
+            "after tools/teacher_labels.py); 'none' uses the SfM points only"
         },
     )
 
@@ -242,8 +244,9 @@ def _find_pseudo_labels(root: Path, images_dir: Path, references: list[str], kin
     found = {n: maps / f"{n}.{kind}.bin" for n in references if (maps / f"{n}.{kind}.bin").is_file()}
     if not found:
         raise WorkspaceError(
-            f"training scene {str(root)!r} has no {kind} depth map in {str(maps)!r}: run colmap-pvs stereo "
-            f"on it first (pseudo_labels={kind!r})"
+            f"training scene {str(root)!r} has no {kind} depth map in {str(maps)!r}: run "
+            f"{'tools/teacher_labels.py' if kind == 'teacher' else 'colmap-pvs stereo'} on it first "
+            f"(pseudo_labels={kind!r})"
         )
     if len(found) < len(references):
         logger.warning("training scene %s: %d of %d references have no %s map (no pseudo-label there)",
