@@ -42,14 +42,16 @@ folders. Per scene:
    less than ``--geo_rel``; pixels with ``>= --min_consistent`` confirming views are kept.
 6. Output: ``stereo/depth_maps/NAME.teacher.bin`` (COLMAP depth map, 0 = no label) and
    ``NAME.teacher_weight.bin`` (0.5 * agreeing / estimates + 0.5 * min(confirming, check views) /
-   check views, in (0, 1] where labelled; with the defaults ``weight >= 0.5`` selects the stricter
-   labels where 3 estimates agree or 2 views confirm), ``OUT/<scene>/labels.json`` and the summary
-   ``OUT/labels.json``. A rerun skips the images whose settings hash is unchanged.
+   check views, in (0, 1] where labelled; with the defaults it is 0.5 for the weakest labels (3
+   agreeing estimates, 1 confirming view) and above 0.5 where all 4 agree or more views confirm),
+   ``OUT/<scene>/labels.json`` and the summary ``OUT/labels.json``. A rerun skips the images whose
+   settings hash is unchanged.
 
-Default rules, chosen on hololens-dev (see ``--evaluate_gt``): 4 estimates, ``--min_agree 2`` within
-1 %, ``--min_consistent 1`` of ``--check_views 4`` (1 px, 1 %). Requiring the teachers' own
-confidence, 3 agreeing estimates or 2 confirming views is more accurate but covers far less; the
-weight keeps that information instead of dropping the pixels.
+Default rules, chosen on hololens-dev (see ``--evaluate_gt`` and tools/README.md): 4 estimates,
+``--min_agree 3`` within ``--agree_tol 0.02``, ``--min_consistent 1`` of ``--check_views 4``
+(``--geo_pixel 1`` px, ``--geo_rel 0.02``). At about the same accuracy this covers more than 2 of 3
+(or 2 of 4) estimates within 1 %; requiring the teachers' own confidence or 2 confirming views is
+more accurate but covers far less, so the weight carries that instead of dropping the pixels.
 
 With ``--evaluate_gt DIR`` the labels (and each teacher, and the agreement alone) are compared to
 GT depth ``DIR/<stem>.png`` (uint16, times ``--gt_scale`` = metres, 0 invalid) and a table is
@@ -151,6 +153,11 @@ def clone_provenance(repo: Path) -> dict:
     return {"path": str(repo), "commit": commit, "licence": licence}
 
 
+#: Public upstreams of the teachers (recorded in the outputs; the user clones them).
+UPSTREAMS = {"itermvs": "https://github.com/FangjinhuaWang/IterMVS",
+             "patchmatchnet": "https://github.com/FangjinhuaWang/PatchmatchNet"}
+
+
 def _state_dict(path: Path) -> dict:
     # The teachers' checkpoints are plain pickles of {"model": state_dict, ...}; weights_only=False is
     # acceptable here: third-party teacher weights the user downloaded, loaded by a tool, not the package.
@@ -194,7 +201,8 @@ class Teacher:
         self.model.eval()
 
     def provenance(self) -> dict:
-        return {**clone_provenance(self.repo), "weights": self.kind.weights,
+        return {**clone_provenance(self.repo), "upstream": UPSTREAMS[self.kind.repo],
+                "weights": self.kind.weights,
                 "weights_sha256": self.weights_sha256}
 
     def _prepare(self, images, Ks, height: int, width: int):
@@ -527,6 +535,21 @@ def run_estimates(sd: SceneData, estimates: list[str], teachers: dict[str, Teach
             atomic_npz(path, depth=depth, conf=conf.astype(np.float16), meta=np.array(meta), seconds=dt)
 
 
+def cached_runtimes(ws: Path, estimates: list[str], names: list[str]) -> dict[str, float]:
+    """Mean seconds per image of each estimate, from its cache (so reruns keep the first timings)."""
+    out = {}
+    for est in estimates:
+        secs = []
+        for n in names:
+            path = cache_path(ws, est, n)
+            if path.is_file():
+                with np.load(path) as z:
+                    secs.append(float(z["seconds"]))
+        if secs:
+            out[est] = round(float(np.mean(secs)), 2)
+    return out
+
+
 def load_estimate(ws: Path, est: str, name: str):
     path = cache_path(ws, est, name)
     if not path.is_file():
@@ -537,12 +560,12 @@ def load_estimate(ws: Path, est: str, name: str):
 
 @dataclass(frozen=True)
 class Rules:
-    agree_tol: float = 0.01
-    min_agree: int = 2
+    agree_tol: float = 0.02
+    min_agree: int = 3
     use_confidence: bool = False
     check_views: int = 4
     geo_pixel: float = 1.0
-    geo_rel: float = 0.01
+    geo_rel: float = 0.02
     min_consistent: int = 1
 
 
@@ -673,7 +696,7 @@ def evaluate(sd: SceneData, estimates: list[str], rules: Rules, gt_dir: Path, gt
     chosen = decide(sd, estimates, rules, names=list(gts))
     for n, (final, weight, *_rest) in chosen.items():
         add("chosen rules", final, gts[n])
-        for wmin in (0.5, 0.75):
+        for wmin in (0.625, 0.75):
             add(f"chosen rules, weight>={wmin}", np.where(weight >= wmin, final, 0), gts[n])
     for label, r in variants.items():
         for mc in (1, 2):
@@ -744,8 +767,7 @@ def label_scene(scene: Path, args, teachers, estimates, rules: Rules) -> dict:
                      "mean_weight": round(float(weight[final > 0].mean()) if (final > 0).any() else 0.0, 4),
                      "check_views": check_sources(sd, n, rules), "size": [w, h],
                      "depth_range": list(sd.selection.references[n].depth_range)}
-    prev_rt = old.get("teacher_seconds_per_image", {})
-    rt = {k: round(float(np.mean(v)), 2) for k, v in runtimes.items()} or prev_rt
+    rt = cached_runtimes(ws, estimates, sd.names)
     record = {
         "scene": scene.name, "source": str(scene), "settings_hash": shash, "settings": settings,
         "teachers": {k: t.provenance() for k, t in teachers.items()},
