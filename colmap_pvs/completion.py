@@ -64,6 +64,10 @@ SEGMENT_MIN_INLIERS = 0.6
 #: Window (pixels) in which the coarsest segmentation needs as many inliers as outliers of the planes.
 SEGMENT_LOCAL_WINDOW = 31
 
+#: Factor by which a segment's plane may leave the range of its inliers' depths: beyond it the plane is
+#: extrapolated past its support and the pixel gets no depth from the segment.
+SEGMENT_MAX_EXTRAPOLATION = 1.25
+
 #: Smallest spread (standard deviation, pixels) of a segment's inliers across their weakest axis:
 #: below it they lie on a line and the plane's tilt across it is a guess.
 SEGMENT_MIN_SPREAD = 2.0
@@ -230,8 +234,8 @@ def _segment_planes_once(
     k = lookup[labels[rows, cols]]
     u, v = _centred(rows, cols, H, W)
     out = plane[k, 0] + plane[k, 1] * u + plane[k, 2] * v
-    # Within a factor 2 of the inliers' inverse depths: no far extrapolation of a tilted fit.
-    ok = (out >= 0.5 * lo[k]) & (out <= 2.0 * hi[k])
+    # Near the inliers' inverse depths: no far extrapolation of a tilted fit.
+    ok = (out >= lo[k] / SEGMENT_MAX_EXTRAPOLATION) & (out <= SEGMENT_MAX_EXTRAPOLATION * hi[k])
     if guard:  # a segment spanning two surfaces must not give the majority's plane to the other
         ok &= local_in[rows, cols] >= local_out[rows, cols]
     plane_inv, frac = none
@@ -258,7 +262,8 @@ def segment_planes(
     (``1/d = a + b u + c v``, exact on any 3D plane) by iteratively reweighted least squares, and
     gives its depth to every pixel of the region where at least ``min_inliers`` of its known pixels
     lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
-    (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within a factor 2 of their inverse depths. The
+    (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within :data:`SEGMENT_MAX_EXTRAPOLATION` of their
+    depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit). The
     segmentations go from fine to coarse; a pixel takes the finest region that gives it a depth.
     The coarsest one's regions (when there are at least two segmentations) can span two surfaces
     whose boundary shows only a weak edge (an occlusion edge of one colour), so there a pixel also

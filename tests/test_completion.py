@@ -173,6 +173,32 @@ def test_segment_planes_are_robust_to_wrong_known_pixels():
     assert 0.6 < inliers[given].min() and inliers[given].max() < 0.85  # about 3 in 4 are inliers
 
 
+def test_segment_planes_are_not_extrapolated_far_beyond_their_support():
+    """A steep plane known only in a corner of its segment gives its depth only while the plane stays
+    within SEGMENT_MAX_EXTRAPOLATION of its known depths (the statue's paper drawn at twice the depth
+    of everything else), and everywhere when the bar is lifted."""
+    from colmap_pvs.completion import SEGMENT_MAX_EXTRAPOLATION
+
+    H, W = 64, 96
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    depth = (1.0 / (1.0 - 0.0095 * u)).astype(np.float32)  # 1/d falls along the rows: 1 -> 11 m
+    image = np.full((3, H, W), 0.5, np.float32)
+    known = np.where(u < 24, depth, 0.0).astype(np.float32)  # the near quarter is known
+    out, _ = segment_planes(known, image)
+    given = out > 0
+    assert np.abs(out[given] / depth[given] - 1).max() < 0.005  # where it is given, it is right
+    limit = SEGMENT_MAX_EXTRAPOLATION * known[known > 0].max()
+    assert given[(known == 0) & (depth < 0.95 * limit)].all()
+    assert not given[depth > 1.05 * limit].any()
+    assert not given[depth > 1.5 * known.max()].any()  # never twice as deep as anything it was fitted to
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr("colmap_pvs.completion.SEGMENT_MAX_EXTRAPOLATION", 100.0)
+    try:
+        assert (segment_planes(known, image)[0][known == 0] > 0).all()
+    finally:
+        monkey.undo()
+
+
 def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
     """No depth where a segment's known pixels are too few, lie on one line, or are half on one
     plane and half on another (under ``min_inliers``)."""
