@@ -66,7 +66,9 @@ class AdaptConfig:
     def __post_init__(self) -> None:
         kinds = ("none", "geometric", "filled")  # the maps a workspace's own stereo run writes
         if self.pseudo_labels not in kinds:
-            raise ConfigError(f"AdaptConfig: pseudo_labels must be one of {kinds}, got {self.pseudo_labels!r}")
+            raise ConfigError(
+                f"AdaptConfig: pseudo_labels must be one of {kinds}, got {self.pseudo_labels!r}"
+            )
         if self.steps < 0 or not self.max_seconds >= 0:
             raise ConfigError(
                 f"AdaptConfig: steps and max_seconds must be >= 0, got {self.steps}, {self.max_seconds}"

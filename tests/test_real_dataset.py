@@ -155,7 +155,8 @@ def test_teacher_labels_are_read_like_the_other_pseudo_labels(analytic_scene, tm
     geometric = sorted(maps.glob("*.geometric.bin"))
     for f in geometric[1:]:
         f.rename(f.with_name(f.name.replace(".geometric.bin", ".teacher.bin")))
-    ds = RealMVSDataset(RealDatasetConfig(roots=(root,), pseudo_labels="teacher", **SMALL), cache_dir=tmp_path)
+    cfg = RealDatasetConfig(roots=(root,), pseudo_labels="teacher", **SMALL)
+    ds = RealMVSDataset(cfg, cache_dir=tmp_path)
     labelled = {f.name.replace(".geometric.bin", "") for f in geometric[1:]}
     assert set(ds.scenes[0].pseudo) == labelled & set(ds.scenes[0].references)
     assert all(p.name.endswith(".teacher.bin") for p in ds.scenes[0].pseudo.values())
