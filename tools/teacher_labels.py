@@ -80,6 +80,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from colmap_pvs.geometry import pixel_centers, scale_intrinsics, to_homogeneous  # noqa: E402
+from colmap_pvs.io.files import atomic_write_bytes, file_sha256  # noqa: E402
 from colmap_pvs.io.images import load_image  # noqa: E402
 from colmap_pvs.io.maps import write_depth_map  # noqa: E402
 from colmap_pvs.io.sparse import read_sparse_model  # noqa: E402
@@ -132,14 +133,6 @@ def _import_from_clone(repo: Path, module: str, attr: str):
         sys.modules.update(saved)
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def clone_provenance(repo: Path) -> dict:
     """Commit, licence line and upstream of a teacher clone."""
     try:
@@ -176,7 +169,7 @@ class Teacher:
         self.weights_path = self.repo / self.kind.weights
         if not self.weights_path.is_file():
             raise SystemExit(f"teacher weights {self.weights_path} not found (clone {self.repo} incomplete?)")
-        self.weights_sha256 = sha256_file(self.weights_path)
+        self.weights_sha256 = file_sha256(self.weights_path)
         state = _state_dict(self.weights_path)
         if self.kind.repo == "itermvs":
             pipeline = _import_from_clone(self.repo, "models.net", "Pipeline")
@@ -425,14 +418,6 @@ def prepare_workspace(scene: Path, out: Path, max_image_size: int) -> Path:
                                   max_image_size=max_image_size))
     (out / "stereo" / "depth_maps").mkdir(parents=True, exist_ok=True)
     return out
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
 
 
 def atomic_json(path: Path, obj) -> None:
