@@ -253,17 +253,7 @@ def fmt(values: list[float]) -> str:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", type=Path, default=rd.DEFAULT_CHECKPOINT)
-    p.add_argument("--tag", default="cloud", help="the workspace WORK/quick/TAG_clean (hololens_quick's)")
-    p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
-    p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
-    p.add_argument("--stride", type=int, default=3)
-    p.add_argument("--offset", type=int, default=0)
-    p.add_argument("--max_image_size", type=int, default=540)
-    p.add_argument("--num_views", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--resume", action="store_true", help="keep the tag's maps (the stereo step's resume)")
-    p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
+    rd.add_quick_args(p, "cloud", "the workspace WORK/quick/TAG_clean (hololens_quick's)", stride=3)
     p.add_argument("--fusions", nargs="*", default=list(FUSIONS), choices=FUSIONS)
     p.add_argument("--fuse", nargs="*", default=[], metavar="KEY=VALUE", help="FuseConfig fields (pvs)")
     p.add_argument("--reuse_clouds", action="store_true", help="score the clouds already in the workspace")

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from pathlib import Path
 
 import real_depth as rd
 
@@ -37,21 +36,11 @@ from colmap_pvs.views import ViewSelectionConfig, select_views
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", type=Path, default=rd.DEFAULT_CHECKPOINT)
-    p.add_argument("--tag", default="quick", help="names the workspaces under WORK/quick")
-    p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
-    p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
-    p.add_argument("--stride", type=int, default=9)
-    p.add_argument("--offset", type=int, default=0)
-    p.add_argument("--max_image_size", type=int, default=540)
-    p.add_argument("--num_views", type=int, default=5)
+    rd.add_quick_args(p, "quick", "names the workspaces under WORK/quick", stride=9)
     p.add_argument("--disturbed", action="store_true", help="also: 2 of the sources replaced by far frames")
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--resume", action="store_true", help="keep the tag's current maps (no overwrite)")
     p.add_argument("--all_references", action="store_true",
                    help="every frame is a reference (as in a user's workspace); --stride/--offset pick the "
                    "frames evaluated")
-    p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
     p.add_argument("--views", nargs="*", default=[], metavar="KEY=VALUE", help="ViewSelectionConfig fields")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -109,6 +109,22 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     return model_dir
 
 
+def add_quick_args(p: argparse.ArgumentParser, tag: str, tag_help: str, stride: int) -> None:
+    """The arguments of a ``WORK/quick/TAG_clean`` workspace (``hololens_quick.py`` and
+    ``cloud_benchmark.py``): checkpoint, data, frames, views, threads, resume and stereo overrides."""
+    p.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT)
+    p.add_argument("--tag", default=tag, help=tag_help)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--work_dir", type=Path, default=DEFAULT_WORK)
+    p.add_argument("--stride", type=int, default=stride)
+    p.add_argument("--offset", type=int, default=0)
+    p.add_argument("--max_image_size", type=int, default=540)
+    p.add_argument("--num_views", type=int, default=5)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--resume", action="store_true", help="keep the tag's maps (the stereo step's resume)")
+    p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
+
+
 def parse_overrides(items: list[str]) -> dict:
     """``["key=value", ...]`` from a ``--stereo`` / ``--views`` flag as a dict; values parsed as JSON
     where they are (``true``, ``0.8``, ``[8, 16]``), else kept as strings."""
