@@ -79,7 +79,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from colmap_pvs.geometry import pixel_centers, scale_intrinsics, to_homogeneous  # noqa: E402
+from colmap_pvs.consistency import SourceMaps, check_consistency  # noqa: E402
+from colmap_pvs.geometry import scale_intrinsics, to_homogeneous  # noqa: E402
 from colmap_pvs.io.files import atomic_write_bytes, file_sha256  # noqa: E402
 from colmap_pvs.io.images import load_image  # noqa: E402
 from colmap_pvs.io.maps import write_depth_map  # noqa: E402
@@ -94,6 +95,9 @@ DEFAULT_ESTIMATES = "itermvs_dtu:0-4,itermvs_blended:0-4,patchmatchnet:0-4,iterm
 
 #: Bump when the meaning of the cached teacher outputs changes.
 CACHE_VERSION = 1
+#: Bumped when the rules' code changes the labels for the same settings (2: the view check is the
+#: geometric pass's own, colmap_pvs.consistency).
+LABEL_VERSION = 2
 
 
 # --------------------------------------------------------------------------- teachers
@@ -319,52 +323,16 @@ def consistent_views(
     pixel_tol: float = 1.0,
     rel_tol: float = 0.01,
 ) -> np.ndarray:
-    """``[H, W]`` number of source maps confirming ``depth_ref`` (0 = no depth).
+    """``[H, W]`` number of source maps ``(depth, K, cam_from_world)`` confirming ``depth_ref``.
 
-    Each reference pixel with depth is lifted to 3D, projected into a source ``(depth, K,
-    cam_from_world)``, the source depth there (bilinear, only between valid pixels) is lifted back
-    and projected into the reference: the view confirms the pixel when that round trip lands within
-    ``pixel_tol`` px of the pixel and its depth is within ``rel_tol`` (relative) of ``depth_ref``.
-    Pixel centres are at ``+0.5`` (COLMAP convention) throughout.
+    The geometric pass's own forward-backward check (:func:`colmap_pvs.consistency.check_consistency`):
+    a view confirms a pixel when the round trip through its depth lands within ``pixel_tol`` px and
+    the depths differ by at most ``rel_tol`` (relative).
     """
-    h, w = depth_ref.shape
-    u, v = pixel_centers(h, w)
-    has = depth_ref > 0
-    d = depth_ref.astype(np.float64)
-    Kr_inv = np.linalg.inv(K_ref)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ Kr_inv.T
-    X_ref = rays * d[..., None]
-    Tr = to_homogeneous(pose_ref)
-    count = np.zeros((h, w), np.int32)
-    for depth_src, K_src, pose_src in sources:
-        Ts = to_homogeneous(pose_src)
-        rel = Ts @ np.linalg.inv(Tr)  # ref camera -> src camera
-        X_s = X_ref @ rel[:3, :3].T + rel[:3, 3]
-        z = X_s[..., 2]
-        zs = np.where(z > 1e-9, z, 1.0)
-        p = X_s @ np.asarray(K_src, np.float64).T
-        us, vs = p[..., 0] / zs, p[..., 1] / zs
-        hs, ws = depth_src.shape
-        mx, my = (us - 0.5).astype(np.float32), (vs - 0.5).astype(np.float32)
-        vmask = (depth_src > 0).astype(np.float32)
-        wsum = cv2.remap(vmask, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        dsum = cv2.remap(depth_src.astype(np.float32) * vmask, mx, my, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        ok = has & (z > 1e-9) & (wsum > 0.999)
-        ds = np.where(ok, dsum / np.maximum(wsum, 1e-6), 0).astype(np.float64)
-        Ks_inv = np.linalg.inv(K_src)
-        rays_s = np.stack([us, vs, np.ones_like(us)], -1) @ Ks_inv.T
-        Xs2 = rays_s * ds[..., None]
-        back = np.linalg.inv(rel)
-        Xr2 = Xs2 @ back[:3, :3].T + back[:3, 3]
-        z2 = Xr2[..., 2]
-        z2s = np.where(z2 > 1e-9, z2, 1.0)
-        q = Xr2 @ np.asarray(K_ref, np.float64).T
-        u2, v2 = q[..., 0] / z2s, q[..., 1] / z2s
-        dist = np.hypot(u2 - u, v2 - v)
-        ok &= (z2 > 1e-9) & (dist < pixel_tol) & (np.abs(z2 - d) < rel_tol * np.maximum(d, 1e-12))
-        count += ok
-    return count
+    maps = [SourceMaps(np.asarray(d, np.float32), None, K, pose) for d, K, pose in sources]
+    res = check_consistency(depth_ref, None, K_ref, pose_ref, maps,
+                            max_reproj_error=pixel_tol, max_depth_error=rel_tol)
+    return res.agree.sum(0).astype(np.int32)
 
 
 def label_weight(n_agree: np.ndarray, n_estimates: int, n_views: np.ndarray, check_views: int) -> np.ndarray:
@@ -715,6 +683,7 @@ def settings_of(args, rules: Rules, estimates, teachers: dict[str, Teacher]) -> 
         "num_views": args.num_views,
         "weights": {k: t.weights_sha256 for k, t in teachers.items()},
         "cache_version": CACHE_VERSION,
+        "label_version": LABEL_VERSION,
     }
 
 
