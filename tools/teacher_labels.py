@@ -392,12 +392,6 @@ def atomic_json(path: Path, obj) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=False) + "\n").encode())
 
 
-def atomic_depth_map(path: Path, depth: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    write_depth_map(tmp, depth)
-    os.replace(tmp, path)
-
-
 def atomic_npz(path: Path, **arrays) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz", dir=path.parent)
@@ -713,8 +707,8 @@ def label_scene(scene: Path, args, teachers, estimates, rules: Rules) -> dict:
     for n in todo:
         final, weight, count, nviews = decide(sd, estimates, rules, names=[n], cand_cache=cand_cache)[n]
         (maps / n).parent.mkdir(parents=True, exist_ok=True)
-        atomic_depth_map(maps / f"{n}.teacher.bin", final)
-        atomic_depth_map(maps / f"{n}.teacher_weight.bin", weight)
+        write_depth_map(maps / f"{n}.teacher.bin", final)
+        write_depth_map(maps / f"{n}.teacher_weight.bin", weight)
         h, w = final.shape
         images[n] = {"coverage_pct": round(100.0 * float((final > 0).mean()), 3),
                      "candidate_pct": round(100.0 * float((count >= rules.min_agree).mean()), 3),
