@@ -39,7 +39,6 @@ One forward pass per checkpoint and hint setting, single-threaded by default (``
 from __future__ import annotations
 
 import argparse
-import hashlib
 import time
 from pathlib import Path
 
@@ -47,6 +46,8 @@ import cv2
 import numpy as np
 import torch
 
+from colmap_pvs.geometry import scale_intrinsics
+from colmap_pvs.io.files import file_sha256
 from colmap_pvs.io.maps import colorize_depth
 from colmap_pvs.stereo.config import DEFAULT_CHECKPOINT
 from colmap_pvs.stereo.network import estimate_depth
@@ -104,7 +105,7 @@ def load_pair(data_dir: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         path = folder / name
         if not path.is_file():
             raise SystemExit(f"--data_dir: {str(path)!r} is missing (needs {', '.join(FILES)})")
-        got = hashlib.sha256(path.read_bytes()).hexdigest()
+        got = file_sha256(path)
         if got != expected:
             raise SystemExit(f"{str(path)!r} has sha256 {got}, skimage's registry says {expected}")
     left, right = (cv2.imread(str(folder / n), cv2.IMREAD_COLOR)[:, :, ::-1].copy() for n in FILES[:2])
@@ -128,10 +129,9 @@ def scaled_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """``K`` (Middlebury: pixel centres at integers) for an image resized by ``sx, sy``, in the network's
     convention (pixel ``(c, r)`` centred at ``(c + 0.5, r + 0.5)``). Both views move alike: no depth
     change."""
-    out = K.astype(np.float64).copy()
-    out[0, 0], out[1, 1] = K[0, 0] * sx, K[1, 1] * sy
-    out[0, 2], out[1, 2] = (K[0, 2] + 0.5) * sx, (K[1, 2] + 0.5) * sy
-    return out
+    shifted = K.astype(np.float64).copy()
+    shifted[:2, 2] += 0.5
+    return scale_intrinsics(shifted, sx, sy)
 
 
 def metrics(depth: np.ndarray, gt: np.ndarray, valid: np.ndarray, f: float, b: float) -> dict:
