@@ -78,6 +78,15 @@ def report_depth(metrics, per_image: bool = True) -> str:
             f"{f:.0%}: {_fmt(e, '.4f')}/{_fmt(o, '.4f')}"
             for f, e, o in zip(sp["fractions"], sp["error"], sp["oracle"], strict=True)
         ))
+    if metrics.calibration is not None:  # the confidence as a probability: predicted vs observed
+        cal = metrics.calibration
+        lines.append(f"confidence calibration (P(relative error <= {cal['tolerance']:g}); expected "
+                     f"calibration error {cal['ece']:.3f}), per bin of confidence: predicted/observed:")
+        lines.append("  " + "  ".join(
+            f"{lo:.1f}-{hi:.1f}: {p:.2f}/{o:.2f}"
+            for lo, hi, n, p, o in zip(cal["edges"][:-1], cal["edges"][1:], cal["count"], cal["predicted"],
+                                       cal["observed"], strict=True) if n
+        ))
     if metrics.checkpoint_used is None:
         ckpt = "unknown (no stereo/colmap_pvs_stereo.json)"
     elif metrics.checkpoint_sha256 is None:

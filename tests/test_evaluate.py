@@ -205,6 +205,31 @@ def test_evaluate_depth_reads_the_kind_it_is_asked_for(depth_case):
     assert m.sparsification["error"][m.sparsification["fractions"].index(0.5)] == pytest.approx(0.0, abs=1e-3)
 
 
+def test_evaluate_depth_reports_how_well_calibrated_confidences_predict(depth_case, capsys):
+    """Confidences whose provenance names a calibration tolerance are checked as probabilities:
+    a (2.02 for 2.0: 1 % off) is right within 5 % but said 0.2; b is exact and said 0.95."""
+    from colmap_pvs.cli.reports_eval import report_depth
+    from colmap_pvs.io.maps import write_array
+
+    ws, gt_dir = depth_case
+    for name, value in (("a.jpg", 0.2), ("b.jpg", 0.95)):
+        path = ws / "stereo" / "confidence_maps" / f"{name}.geometric.bin"
+        write_array(path, np.full((3, 4), value, np.float32))
+    assert evaluate_depth(EvaluateDepthConfig(ws, gt_dir, gt_scale=0.001)).calibration is None  # raw scores
+    prov = ws / "stereo" / "provenance"
+    prov.mkdir(parents=True)
+    for name in ("a.jpg", "b.jpg"):
+        (prov / f"{name}.geometric.json").write_text(json.dumps(
+            {"settings": {"confidence_calibration": {"tolerance": 0.05, "score": [0, 1], "prob": [0, 1]}}}))
+    m = evaluate_depth(EvaluateDepthConfig(ws, gt_dir, gt_scale=0.001))
+    cal = m.calibration
+    assert cal["tolerance"] == 0.05 and cal["count"][2] == 12 and cal["count"][9] == 11
+    assert cal["observed"][2] == 1.0 and cal["observed"][9] == 1.0
+    assert cal["ece"] == pytest.approx((12 * 0.8 + 11 * 0.05) / 23)
+    assert json.loads(m.output_path.read_text())["metrics"]["calibration"]["ece"] == pytest.approx(cal["ece"])
+    assert "expected calibration error 0.441" in report_depth(m)
+
+
 def test_listed_images_without_prediction_count_as_zero_coverage(depth_case):
     ws, gt_dir = depth_case
     cv2.imwrite(str(gt_dir / "c.png"), np.full((6, 8), 1000, np.uint16))

@@ -36,6 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__
+from ..confidence import reliability
 from ..config import save_config
 from ..errors import ConfigError, MapFormatError, ShapeError, WorkspaceError
 from ..io.files import file_sha256
@@ -425,12 +426,14 @@ class DepthMetrics:
     checkpoint_used: str | None = None
     checkpoint_sha256: str | None = None
     sparsification: dict[str, list[float]] | None = None
+    calibration: dict | None = None
 
     def to_json(self) -> dict:
         return {
             "note": METRICS_NOTE,
             "pooled": self.pooled.to_json(),
             "sparsification": self.sparsification,
+            "calibration": self.calibration,
             "per_image": {k: v.to_json() for k, v in self.per_image.items()},
             "missing_gt": list(self.missing_gt),
             "missing_prediction": list(self.missing_prediction),
@@ -468,6 +471,16 @@ def sparsification_curve(
     return out
 
 
+def _calibration_tolerance(stereo_dir: Path, name: str, kind: str) -> float | None:
+    """The relative tolerance that ``name``'s ``kind`` confidence is a probability for (from its
+    provenance: ``colmap_pvs.confidence``); ``None`` for raw scores or without provenance."""
+    try:
+        settings = json.loads((stereo_dir / "provenance" / f"{name}.{kind}.json").read_text())["settings"]
+        return float(settings["confidence_calibration"]["tolerance"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
     """Compare a workspace's predicted depth maps with GT depth; write the metrics JSON atomically.
 
@@ -497,6 +510,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
     warned_aspect = False
     missing_shape: tuple[int, ...] | None = None
     conf_err: list[tuple[np.ndarray, np.ndarray]] = []
+    tolerances: set[float | None] = set()  # of the confidence maps evaluated (one, when calibrated)
     for name in tqdm(names, desc="evaluate depth", unit="image", disable=len(names) < 20):
         gt_path = find_gt_depth(gt_dir, name, config.gt_pattern)
         if gt_path is None:
@@ -543,6 +557,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
                 if config.max_gt_depth > 0:
                     ok &= g <= config.max_gt_depth
                 conf_err.append((conf[ok.ravel()], np.abs(pred[ok] - g[ok]) / g[ok]))
+                tolerances.add(_calibration_tolerance(ws.stereo_dir, name, config.kind))
         if sums.num_gt == 0:
             logger.warning("GT depth %s has no valid pixel", gt_path)
         per_image[name] = sums.stats()
@@ -558,11 +573,13 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         pooled_stats = dataclasses.replace(pooled_stats, scale=float("nan"))  # per-image scales differ
     stereo_info, ckpt, sha = _stereo_run_info(ws.stereo_dir)
     out = Path(config.output_path) if config.output_path is not None else ws.stereo_dir / "metrics.json"
-    sparsification = None
+    sparsification = calibration = None
     if conf_err:
-        sparsification = sparsification_curve(
-            np.concatenate([c for c, _ in conf_err]), np.concatenate([e for _, e in conf_err])
-        )
+        conf, err = np.concatenate([c for c, _ in conf_err]), np.concatenate([e for _, e in conf_err])
+        sparsification = sparsification_curve(conf, err)
+        if len(tolerances) == 1 and None not in tolerances:  # probabilities: how well they predict
+            tolerance = tolerances.pop()
+            calibration = {"tolerance": tolerance, **reliability(conf, err <= tolerance).to_dict()}
     metrics = DepthMetrics(
         per_image=per_image,
         pooled=pooled_stats,
@@ -573,6 +590,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         checkpoint_used=ckpt,
         checkpoint_sha256=sha,
         sparsification=sparsification,
+        calibration=calibration,
     )
     save_config(
         config,

@@ -68,7 +68,7 @@ class PhotometricConfig:
     min_confidence: float = field(
         default=0.0,
         metadata={
-            "help": "drop network pixels below this confidence (0: keep all; the geometric pass filters)"
+            "help": "drop network pixels whose confidence (P(within 5 %)) is below this (0: keep all)"
         },
     )
     sparse_guidance: Literal["checkpoint", "on", "off"] = field(
@@ -137,7 +137,8 @@ class GeometricConfig:
         default=True, metadata={"help": "average the depth with the agreeing sources' reprojected depths"},
     )
     min_confidence: float = field(
-        default=0.0, metadata={"help": "pixels with geometric confidence below this are invalid"},
+        default=0.0,
+        metadata={"help": "pixels whose geometric confidence (P(within 5 %)) is below this are invalid"},
     )
     reestimate: bool = field(
         default=False,

@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from ..confidence import Calibration, checkpoint_calibration
 from ..errors import WorkspaceError
 from ..geometry import sparse_depth_map
 from ..io.files import file_sha256
@@ -205,6 +206,7 @@ class StereoContext:
     net: torch.nn.Module
     checkpoint_path: Path
     checkpoint_sha256: str
+    calibration: Calibration
     device: torch.device
     selection: ViewSelection
     references: dict[str, object]
@@ -303,6 +305,7 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     net, ckpt_path, _meta = load_stereo_model(config, device)
+    calibration = checkpoint_calibration(ckpt_path)  # the trained checkpoint's, also when adapted below
     adapt_seconds = 0.0
     if config.adapt.steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
         net, ckpt_path, adapt_seconds = adapt_network(config, ws, ckpt_path, device)
@@ -318,6 +321,7 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
         net=net,
         checkpoint_path=ckpt_path,
         checkpoint_sha256=file_sha256(ckpt_path),
+        calibration=calibration,
         device=device,
         selection=selection,
         references=refs,

@@ -120,8 +120,8 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     depth = complete_depth(known, photo)
     if cfg.completion.segments:
         depth = np.where(segmented, plane, depth).astype(np.float32)
-    conf = completed_confidence(kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)),
-                                segmented, inliers)
+    conf = ctx.calibration.apply("filled", completed_confidence(
+        kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers), depth > 0)
     timings["fit"] = time.perf_counter() - t0
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
              "geometric_fraction": float(geometric_kept.mean()),

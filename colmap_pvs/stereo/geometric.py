@@ -213,15 +213,18 @@ class Checked:
     conf: np.ndarray | None = None
 
 
-def _kept(cfg: StereoConfig, ref: SourceMaps, res, vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _kept(ctx: StereoContext, ref: SourceMaps, res, vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` that the check ``res`` keeps: confirmed by
     ``geom_min_consistent`` sources from ``geom_min_triangulation_angle`` or more, averaged over them
-    (``geom_average_depth``), with their geometric confidence of at least ``geom_min_confidence``."""
+    (``geom_average_depth``), with their geometric confidence (calibrated) of at least
+    ``geom_min_confidence``."""
+    cfg = ctx.config
     confirm = res.confirming(cfg.geometric.min_triangulation_angle)  # agreeing, from far enough apart
     keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geometric.min_consistent)
     depth = res.mean_depth(ref.depth, confirm) if cfg.geometric.average_depth else ref.depth.copy()
     depth = np.where(keep, depth, 0.0).astype(np.float32)
-    conf = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
+    score = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
+    conf = ctx.calibration.apply("geometric", score, keep)
     keep &= conf >= cfg.geometric.min_confidence
     depth[~keep] = 0.0
     return depth, np.where(keep, conf, 0.0).astype(np.float32)
@@ -240,7 +243,7 @@ def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: b
     ref, srcs, vis = _load_check(ctx, name, setup)
     check = _check_kwargs(ctx)
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    depth, conf = _kept(ctx.config, ref, res, vis) if kept else (None, None)
+    depth, conf = _kept(ctx, ref, res, vis) if kept else (None, None)
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
@@ -289,7 +292,8 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "geometric", "skipped", setup)
     prov, sources, missing, entry = setup.prov, setup.sources, setup.missing, setup.entry
     seed_fingerprint = fingerprint(setup.settings)
-    settings = dict(setup.settings, **pass_settings(cfg, "geometric"))  # + those the seeds ignore
+    settings = dict(setup.settings, **pass_settings(cfg, "geometric"),  # + those the seeds ignore
+                    confidence_calibration=ctx.calibration.settings("geometric"))
     splat_sources: dict[str, CheckSetup] = {}  # the sources whose seeds are projected in: their checks
     if cfg.geometric.splat_min_sources > 0:
         for s in sources:
@@ -340,7 +344,7 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         reestimated = True
         t0 = time.perf_counter()
         res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-        depth, conf = _kept(cfg, ref, res, vis)
+        depth, conf = _kept(ctx, ref, res, vis)
         del res
         timings["consistency"] = time.perf_counter() - t0
     h, w = depth.shape
@@ -361,7 +365,8 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         timings["splat_seeds"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geometric.splat_min_sources)
-        splat_conf = (SPLAT_CONFIDENCE * support / max(1, len(sources))).astype(np.float32)
+        splat_conf = ctx.calibration.apply("geometric", SPLAT_CONFIDENCE * support / max(1, len(sources)),
+                                           splat > 0)
         added = ~keep & (splat > 0) & (splat_conf >= cfg.geometric.min_confidence)
         depth = np.where(added, splat, depth).astype(np.float32)
         conf = np.where(added, splat_conf, conf).astype(np.float32)

@@ -79,9 +79,12 @@ def fingerprint(settings: dict) -> str:
 
 def stage_settings(ctx: StereoContext, stage: Stage, section: str, *, seeds: bool = False) -> dict:
     """The settings of ``stage`` that its maps depend on (:func:`~colmap_pvs.stereo.config.pass_settings`
-    of ``ctx.config.<section>``), its name and its format version."""
+    of ``ctx.config.<section>``), its name, its format version and (but for the seeds, which have no
+    confidence) its confidence calibration curve."""
     out = pass_settings(ctx.config, section, seeds=seeds)
     out.update(stage=stage, format_version=FORMAT_VERSIONS[stage])
+    if not seeds:
+        out["confidence_calibration"] = ctx.calibration.settings(stage)
     return out
 
 

@@ -2,8 +2,9 @@
 
 Writes ``stereo/{depth,normal,confidence}_maps/NAME.photometric.bin`` (flat image regions moved
 towards the sparse prior, :mod:`colmap_pvs.prior`; the confidence is the network's probability mass
-times its agreement with that prior) and ``stereo/visibility_maps/NAME.bin`` (the learned
-per-source visibility, ``[h/4, w/4, S]`` at the network size, sources in the provenance file).
+times its agreement with that prior, calibrated by :mod:`colmap_pvs.confidence`) and
+``stereo/visibility_maps/NAME.bin`` (the learned per-source visibility, ``[h/4, w/4, S]`` at the
+network size, sources in the provenance file).
 """
 
 from __future__ import annotations
@@ -115,6 +116,8 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
             depth = blend_with_prior(depth, prior, weight)
         timings["prior_blend"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    # the score as P(depth within the tolerance)
+    conf = ctx.calibration.apply("photometric", conf, np.isfinite(depth) & (depth > 0))
     depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
     timings["confidence"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -1,0 +1,76 @@
+"""tools/calibrate_confidence.py: fit curves on raw maps with known depth, then check them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colmap_pvs.confidence import load_calibration, reliability
+from colmap_pvs.io.maps import read_array, read_depth_map
+
+_PATH = Path(__file__).resolve().parents[1] / "tools" / "calibrate_confidence.py"
+
+
+@pytest.fixture(scope="module")
+def tool():
+    spec = importlib.util.spec_from_file_location("calibrate_confidence", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["calibrate_confidence"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tmp_path, tiny_checkpoint,
+                                                        capsys):
+    from scenes import render_view, stereo_config
+
+    from colmap_pvs.stereo import run_stereo
+
+    ws = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], ws)
+    run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0))
+    gt = ws / "gt"
+    gt.mkdir()
+    for name in analytic_scene["names"]:
+        im = analytic_scene["model"].image_by_name(name)
+        K = analytic_scene["map_K"][name]
+        view = render_view(analytic_scene["scene"], K, im.cam_from_world, 160, 120)
+        np.save(gt / f"{name}.npy", view["depth"].astype(np.float32))
+    out = tmp_path / "cal.json"
+    assert tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}",
+                      "--kinds", "photometric", "geometric", "--tolerance", "0.1", "--data", "analytic",
+                      "--out", str(out)]) == 0
+    cal = load_calibration(out)
+    assert set(cal.curves) == {"photometric", "geometric"} and cal.tolerance == 0.1
+    assert cal.fit["photometric"]["data"] == "analytic" and cal.fit["photometric"]["workspaces"] == ["ws"]
+    # the fitted photometric curve predicts the share of right pixels of these maps (in-sample)
+    conf, right = [], []
+    for name in analytic_scene["names"]:
+        d = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.photometric.bin")
+        c = read_array(ws / "stereo" / "confidence_maps" / f"{name}.photometric.bin").reshape(d.shape)
+        g = np.load(gt / f"{name}.npy")
+        ok = (d > 0) & (g > 0)
+        conf.append(c[ok])
+        right.append(np.abs(d[ok] - g[ok]) <= 0.1 * g[ok])
+    conf, right = np.concatenate(conf), np.concatenate(right)
+    fitted = cal.apply("photometric", conf, np.ones(conf.shape, bool))
+    assert abs(fitted.mean() - right.mean()) < 0.02
+    assert reliability(fitted, right).ece < 0.05
+    # fit the completion on top, keeping the others' curves; then check
+    assert tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}", "--kinds",
+                      "filled", "--tolerance", "0.1", "--start", str(out), "--out", str(out)]) == 0
+    assert set(json.loads(out.read_text())["curves"]) == {"photometric", "geometric", "filled"}
+    capsys.readouterr()
+    assert tool.main(["check", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}",
+                      "--apply", str(out), "--calibration", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("ECE") == 3 and "within 0.1" in printed
+    with pytest.raises(SystemExit, match="another tolerance"):
+        tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}", "--kinds",
+                   "filled", "--start", str(out), "--out", str(tmp_path / "other.json")])

@@ -1,0 +1,154 @@
+"""Calibrated confidence (:mod:`colmap_pvs.confidence`): the curves, their fit and the reliability check."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from colmap_pvs.confidence import (
+    DEFAULT_CALIBRATION,
+    KINDS,
+    RAW,
+    Curve,
+    calibration_from_dict,
+    calibration_path,
+    fit_curve,
+    load_calibration,
+    reliability,
+)
+from colmap_pvs.errors import ConfigError
+
+
+def test_reliability_is_zero_for_honest_probabilities_and_the_gap_for_overconfident_ones():
+    rng = np.random.default_rng(0)
+    prob = np.repeat([0.15, 0.55, 0.95], 20000)
+    honest = rng.random(prob.size) < prob
+    assert reliability(prob, honest).ece < 0.01
+    # always 0.9, right half the time: the gap is 0.4 in the one bin used
+    rel = reliability(np.full(1000, 0.9), np.arange(1000) % 2 == 0)
+    assert rel.ece == pytest.approx(0.4)
+    assert rel.count[9] == 1000 and sum(rel.count) == 1000
+
+
+def test_fitted_curve_calibrates_a_monotone_score_and_keeps_its_order():
+    rng = np.random.default_rng(1)
+    score = rng.random(300000)
+    correct = rng.random(score.size) < score**3  # P(correct | score) = score^3: the raw score is far off
+    curve = fit_curve(score, correct)
+    assert reliability(score, correct).ece > 0.15
+    assert reliability(curve(score), correct).ece < 0.01
+    np.testing.assert_allclose(curve(np.array([0.2, 0.5, 0.9])), [0.008, 0.125, 0.729], atol=0.03)
+    assert np.all(np.diff(curve.prob) > 0)  # strictly: pooled levels keep the scores' order
+
+
+def test_fitted_curve_pools_a_score_that_does_not_rank():
+    rng = np.random.default_rng(2)
+    score = rng.random(100000)
+    correct = rng.random(score.size) < 0.3  # the score says nothing: one level, the base rate
+    curve = fit_curve(score, correct)
+    assert max(curve.prob) - min(curve.prob) < 0.02
+    assert np.mean(curve.prob) == pytest.approx(0.3, abs=0.02)
+
+
+def test_apply_maps_valid_pixels_and_keeps_kinds_without_a_curve_as_they_are():
+    cal = calibration_from_dict({"tolerance": 0.05,
+                                 "curves": {"geometric": {"score": [0.0, 1.0], "prob": [0.5, 0.9]}}})
+    score = np.array([[0.0, 0.5], [1.0, 2.0]], np.float32)
+    valid = np.array([[True, True], [True, False]])
+    np.testing.assert_allclose(cal.apply("geometric", score, valid), [[0.5, 0.7], [0.9, 0.0]])
+    np.testing.assert_allclose(cal.apply("geometric", score), [[0.0, 0.7], [0.9, 0.9]])  # valid: score > 0
+    np.testing.assert_array_equal(cal.apply("photometric", score), score)
+    np.testing.assert_array_equal(RAW.apply("filled", score), score)
+    with pytest.raises(ConfigError, match="unknown kind"):
+        cal.apply("teacher", score)
+
+
+def test_bad_calibration_files_are_refused_naming_the_file(tmp_path):
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps({"tolerance": 0.05, "curves": {"fused": {"score": [0, 1], "prob": [0, 1]}}}))
+    with pytest.raises(ConfigError, match=r"cal\.json.*unknown kinds \['fused'\]"):
+        load_calibration(path)
+    path.write_text(json.dumps({"tolerance": 0.05, "curves": {"filled": {"score": [1, 0], "prob": [0, 1]}}}))
+    with pytest.raises(ConfigError, match="cal.json: bad curve"):
+        load_calibration(path)
+    path.write_text("{")
+    with pytest.raises(ConfigError, match="cannot read the confidence calibration"):
+        load_calibration(path)
+    with pytest.raises(ConfigError, match="rise within"):
+        Curve((0.0, 1.0), (0.6, 0.4))
+
+
+def test_shipped_calibration_has_a_rising_curve_for_every_kind():
+    from colmap_pvs.stereo.config import DEFAULT_CHECKPOINT
+
+    assert calibration_path(DEFAULT_CHECKPOINT) == DEFAULT_CALIBRATION
+    cal = load_calibration(DEFAULT_CALIBRATION)
+    assert 0 < cal.tolerance < 1 and set(cal.curves) == set(KINDS)
+    for kind in KINDS:
+        curve = cal.curves[kind]
+        assert np.all(np.diff(curve.prob) > 0) and 0 <= curve.prob[0] and curve.prob[-1] <= 1
+        assert kind in cal.fit  # where each curve comes from
+
+
+def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(analytic_scene, tmp_path,
+                                                                              tiny_checkpoint, caplog):
+    """Every pass writes its score through its kind's curve, the checkpoint's calibration (without one,
+    the score itself, with a warning); the curves are in each pass's provenance, so another calibration
+    recomputes the passes it changes and the same one nothing."""
+    import shutil
+
+    from scenes import stereo_config
+
+    from colmap_pvs.io.maps import read_array, read_depth_map
+    from colmap_pvs.stereo import run_stereo
+
+    ws = tmp_path / "ws"
+    shutil.copytree(analytic_scene["root"], ws)
+    names = analytic_scene["names"]
+    checkpoint = tmp_path / "model" / "tiny.pt"
+    checkpoint.parent.mkdir()
+    shutil.copy(tiny_checkpoint, checkpoint)
+    cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0)
+    run_stereo(cfg)
+    assert "no confidence calibration for" in caplog.text and "tiny.calibration.json" in caplog.text
+
+    def maps(kind):
+        out = {}
+        for n in names:
+            d = read_depth_map(ws / "stereo" / "depth_maps" / f"{n}.{kind}.bin")
+            out[n] = (d, read_array(ws / "stereo" / "confidence_maps" / f"{n}.{kind}.bin").reshape(d.shape))
+        return out
+
+    raw = {k: maps(k) for k in ("photometric", "geometric")}
+    path = calibration_path(checkpoint)
+    assert path == tmp_path / "model" / "tiny.calibration.json"
+    curves = {"photometric": {"score": [0.0, 1.0], "prob": [0.1, 0.3]},
+              "geometric": {"score": [0.0, 0.5, 1.0], "prob": [0.2, 0.8, 0.9]},
+              "filled": {"score": [0.0, 1.0], "prob": [0.05, 0.15]}}
+    path.write_text(json.dumps({"tolerance": 0.05, "curves": curves}))
+    res = run_stereo(cfg)
+    assert sorted(res.processed) == sorted(res.geometric_processed) == sorted(res.filled_processed)
+    assert sorted(res.processed) == sorted(names)
+    cal = load_calibration(path)
+    for kind in ("photometric", "geometric"):
+        for n, (d, c) in maps(kind).items():
+            d_raw, c_raw = raw[kind][n]
+            np.testing.assert_array_equal(d, d_raw)  # the same pixels (no threshold set)
+            valid = d > 0
+            assert valid.mean() > 0.05
+            np.testing.assert_allclose(c[valid], cal.curves[kind](c_raw[valid]), atol=1e-6)
+            assert np.all(c[~valid] == 0)
+    for d, c in maps("filled").values():
+        assert np.all((c[d > 0] >= 0.05) & (c[d > 0] <= 0.15))
+    prov = json.loads((ws / "stereo" / "provenance" / f"{names[0]}.geometric.json").read_text())
+    assert prov["settings"]["confidence_calibration"]["prob"] == [0.2, 0.8, 0.9]
+    again = run_stereo(cfg)
+    assert again.processed == again.geometric_processed == again.filled_processed == []
+    # a new geometric curve alone: the geometric maps and the completion (which reads them) again
+    curves["geometric"]["prob"] = [0.3, 0.8, 0.9]
+    path.write_text(json.dumps({"tolerance": 0.05, "curves": curves}))
+    res = run_stereo(cfg)
+    assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
+    assert sorted(res.filled_processed) == sorted(names)
