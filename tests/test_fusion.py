@@ -222,6 +222,25 @@ def test_confidence_maps_filter_pixels(workspace, analytic_scene):
     assert fuse(FuseConfig(workspace_path=workspace, min_confidence=0.5)).num_points == 0
 
 
+def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace, analytic_scene):
+    """``input_type filled``: the dense completion's depth (no normal map) with normals fitted to it
+    fuses like the geometric maps; COLMAP's fusion cannot read it."""
+    gt = analytic_scene
+    maps = workspace / "stereo" / "depth_maps"
+    for name in gt["names"]:
+        (maps / f"{name}.geometric.bin").rename(maps / f"{name}.filled.bin")
+    with pytest.raises(WorkspaceError, match="no geometric depth"):
+        fuse(FuseConfig(workspace_path=workspace))
+    result = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
+    assert result.num_images == 5 and result.num_points > 5000
+    cloud = read_point_cloud(result.output_path)
+    assert np.median(_surface_distance(gt, cloud.xyz)) < 1e-5 * gt["scene"].size
+    true_n = gt["scene"].nearest_normal(cloud.xyz.astype(np.float64))
+    assert np.median(np.sum(cloud.normals * true_n, axis=1)) > 0.99  # fitted, not read
+    with pytest.raises(ConfigError, match="input_type 'filled' needs method 'pvs'"):
+        FuseConfig(workspace_path=workspace, input_type="filled", method="colmap")
+
+
 def test_missing_maps(workspace, analytic_scene):
     name = analytic_scene["names"][0]
     (workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").unlink()
