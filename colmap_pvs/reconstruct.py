@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from .confidence import calibration_path
 from .config import config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
@@ -48,7 +49,8 @@ __all__ = ["ReconstructConfig", "ReconstructResult", "reconstruct", "STAGES"]
 STAGES = ("features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh")
 #: The settings each stage's output depends on ("photos": names and sizes of the photos; "model": the
 #: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so a moved
-#: copy of the same weights is the same checkpoint and new weights at the same path are not).
+#: copy of the same weights is the same checkpoint and new weights at the same path are not;
+#: "calibration_sha256": its confidence calibration's, ``colmap_pvs.confidence.calibration_path``).
 STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "features": (
         "photos",
@@ -62,7 +64,7 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
     # every stereo setting that changes the maps, and the weights by their content, wherever they are
-    "stereo": ("stereo", "checkpoint_sha256"),
+    "stereo": ("stereo", "checkpoint_sha256", "calibration_sha256"),
     "fusion": ("fusion_method",),
     "mesh": ("mesh", "mesh_depth"),
 }
@@ -250,11 +252,16 @@ def _remove_stale(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
+def _sha256_or_none(path: Path) -> str | None:
+    return file_sha256(path) if path.is_file() else None
+
+
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
-        "checkpoint_sha256": file_sha256(checkpoint) if checkpoint.is_file() else None,
+        "checkpoint_sha256": _sha256_or_none(checkpoint),
+        "calibration_sha256": _sha256_or_none(calibration_path(checkpoint)),  # the confidence maps'
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
         "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
     }
@@ -269,6 +276,8 @@ def _describe_change(key: str, old, new) -> str:
         return "stereo settings " + ", ".join(changed)
     if key == "checkpoint_sha256":
         return f"the checkpoint's content (sha256 {str(old)[:12]} -> {str(new)[:12]})"
+    if key == "calibration_sha256":
+        return f"the checkpoint's confidence calibration (sha256 {str(old)[:12]} -> {str(new)[:12]})"
     return f"{key} {old} -> {new}"
 
 

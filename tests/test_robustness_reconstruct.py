@@ -281,3 +281,9 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
     assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed  # the same settings
     with pytest.raises(ConfigError, match=r"--num_views 3 -> 4"):
         reconstruct(reconstruct_config(**{**flags, "num_views": 4}))
+    # a calibration beside the checkpoint changes the confidence maps: stereo's record names it
+    reconstruct(reconstruct_config(**flags, overwrite=True))  # a marker of this version
+    (tmp_path / "tiny.calibration.json").write_text(json.dumps(
+        {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))
+    with pytest.raises(ConfigError, match=r"confidence calibration \(sha256 None -> "):
+        reconstruct(reconstruct_config(**flags))
