@@ -15,6 +15,17 @@ REPO_ROOT = TESTS_DIR.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 
+def load_tool(name: str):
+    """The script ``tools/NAME.py`` as a module (``tools/`` is not a package), registered as ``NAME``."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture(scope="session")
 def shared_data_dir() -> Path:
     """``../shared/data`` next to the repository (real captures; read-only). Skips if absent."""

@@ -2,28 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_tool
 
 from colmap_pvs.confidence import load_calibration, reliability
 from colmap_pvs.io.maps import read_array, read_depth_map
 
-_PATH = Path(__file__).resolve().parents[1] / "tools" / "calibrate_confidence.py"
-
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("calibrate_confidence", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["calibrate_confidence"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("calibrate_confidence")
 
 
 def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tmp_path, tiny_checkpoint,

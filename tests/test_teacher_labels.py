@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-_PATH = Path(__file__).resolve().parents[1] / "tools" / "teacher_labels.py"
+from conftest import load_tool
 
 
 @pytest.fixture(scope="module")
 def tl():
-    spec = importlib.util.spec_from_file_location("teacher_labels", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["teacher_labels"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("teacher_labels")
 
 
 H, W = 48, 64
