@@ -13,6 +13,7 @@ network, so a calibration belongs to a checkpoint: ``NAME.calibration.json`` bes
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -30,8 +31,9 @@ DEFAULT_CALIBRATION = Path(__file__).resolve().parent / "weights" / "pvsnet_defa
 KINDS = ("photometric", "geometric", "filled")
 #: Most knots a fitted curve keeps.
 MAX_KNOTS = 48
-#: Added along a fitted curve (0 at its first knot, this at its last) so that it rises strictly:
-#: pixels the isotonic fit pools into one level keep the order of their scores.
+#: Weight of a ramp (0 at a fitted curve's first knot, 1 at its last) blended into it so that it rises
+#: strictly (each level moves by at most this): pixels the isotonic fit pools into one level keep the
+#: order of their scores.
 TIE_BREAK = 1e-3
 
 
@@ -47,6 +49,8 @@ class Curve:
         s, p = np.asarray(self.score, float), np.asarray(self.prob, float)
         if s.ndim != 1 or s.shape != p.shape or s.size < 1:
             raise ConfigError(f"a curve needs as many scores as probabilities, got {s.size} and {p.size}")
+        if not (np.isfinite(s).all() and np.isfinite(p).all()):
+            raise ConfigError("a curve's scores and probabilities must be finite numbers")
         if np.any(np.diff(s) <= 0) or np.any(np.diff(p) < 0) or p.min() < 0 or p.max() > 1:
             raise ConfigError("a curve's scores must increase and its probabilities rise within [0, 1]")
 
@@ -65,13 +69,14 @@ class Calibration:
 
     def apply(self, kind: str, score: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """``score`` ``[H, W]`` of a ``kind`` map as probabilities, 0 outside ``valid`` ``[H, W]``
-        (default: where the score is positive)."""
+        (default: where the score is positive) and where the score is not finite."""
         if kind not in KINDS:
             raise ConfigError(f"unknown kind of map {kind!r}; expected one of {KINDS}")
         score = np.asarray(score, np.float32)
         valid = score > 0 if valid is None else valid
         if valid.shape != score.shape:
             raise ShapeError(f"valid {valid.shape} must match score {score.shape}")
+        valid = valid & np.isfinite(score)
         curve = self.curves.get(kind)
         return np.where(valid, score if curve is None else curve(score), 0.0).astype(np.float32)
 
@@ -82,10 +87,13 @@ class Calibration:
             return None
         return {"tolerance": self.tolerance, "score": list(curve.score), "prob": list(curve.prob)}
 
-    def to_dict(self) -> dict:
-        return {"tolerance": self.tolerance,
-                "curves": {k: {"score": list(c.score), "prob": list(c.prob)} for k, c in self.curves.items()},
-                "fit": self.fit}
+    def sha256(self) -> str | None:
+        """Hash of what the maps depend on (the tolerance and the curves, not the ``fit`` notes);
+        ``None`` without curves."""
+        if not self.curves:
+            return None
+        payload = {kind: self.settings(kind) for kind in sorted(self.curves)}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
 #: Scores written as they are: no curve for any kind (what the calibration tool fits on).
@@ -95,20 +103,22 @@ RAW = Calibration(tolerance=0.0, curves={}, fit={"what": "uncalibrated scores"})
 def calibration_from_dict(data: dict, where: str = "calibration") -> Calibration:
     """A :class:`Calibration` from its JSON form; unknown keys and kinds are errors naming ``where``."""
     if not isinstance(data, dict) or set(data) - {"tolerance", "curves", "fit"}:
-        raise ConfigError(f"{where}: expected the keys tolerance, curves, fit")
-    curves = data.get("curves", {})
+        raise ConfigError(f"{where}: expected an object with the keys tolerance, curves, fit")
+    curves, fit = data.get("curves", {}), data.get("fit", {})
+    if not isinstance(curves, dict) or not isinstance(fit, dict):
+        raise ConfigError(f"{where}: curves and fit must be objects")
     unknown = set(curves) - set(KINDS)
     if unknown:
         raise ConfigError(f"{where}: unknown kinds {sorted(unknown)}; expected some of {KINDS}")
-    tolerance = float(data.get("tolerance", 0.0))
-    if curves and not 0 < tolerance < 1:
-        raise ConfigError(f"{where}: tolerance must be in (0, 1), got {tolerance}")
     try:
+        tolerance = float(data.get("tolerance", 0.0))
         parsed = {k: Curve(tuple(map(float, c["score"])), tuple(map(float, c["prob"])))
                   for k, c in curves.items()}
     except (KeyError, TypeError, ValueError, ConfigError) as exc:
-        raise ConfigError(f"{where}: bad curve ({exc})") from exc
-    return Calibration(tolerance, parsed, dict(data.get("fit", {})))
+        raise ConfigError(f"{where}: bad tolerance or curve ({exc})") from exc
+    if curves and not 0 < tolerance < 1:
+        raise ConfigError(f"{where}: tolerance must be in (0, 1), got {tolerance}")
+    return Calibration(tolerance, parsed, dict(fit))
 
 
 def load_calibration(path: str | Path) -> Calibration:
@@ -127,26 +137,37 @@ def calibration_path(checkpoint: str | Path) -> Path:
     return checkpoint.with_name(checkpoint.stem + ".calibration.json")
 
 
-def checkpoint_calibration(checkpoint: str | Path) -> Calibration:
+def checkpoint_calibration(checkpoint: str | Path, checkpoint_sha256: str | None = None) -> Calibration:
     """The calibration of ``checkpoint`` (:func:`calibration_path`), or :data:`RAW` with a warning
-    when it has none."""
+    when it has none. A calibration fitted for other weights (its ``fit`` records their
+    ``checkpoint_sha256``) is used with a warning: the scores of new weights need new curves."""
     path = calibration_path(checkpoint)
     if not path.is_file():
         logger.warning("no confidence calibration for %s (%s): the confidence maps hold uncalibrated "
                        "scores (tools/calibrate_confidence.py makes one)", checkpoint, path.name)
         return RAW
-    return load_calibration(path)
+    calibration = load_calibration(path)
+    fitted_for = {fit.get("checkpoint_sha256") for fit in calibration.fit.values() if isinstance(fit, dict)}
+    if checkpoint_sha256 is not None and fitted_for - {None} and checkpoint_sha256 not in fitted_for:
+        logger.warning("the confidence calibration %s was fitted for other weights than %s: its "
+                       "probabilities may be off (refit it with tools/calibrate_confidence.py)",
+                       path, checkpoint)
+    return calibration
 
 
 def fit_curve(score: np.ndarray, correct: np.ndarray, max_knots: int = MAX_KNOTS) -> Curve:
     """The isotonic (pool-adjacent-violators) fit of ``P(correct | score)`` over pixels ``score``,
-    ``correct`` (same shape, bool), summarised by at most ``max_knots`` knots at score quantiles,
-    with :data:`TIE_BREAK` added along it so that it rises strictly."""
+    ``correct`` (same shape, bool; non-finite scores are left out), summarised by at most
+    ``max_knots`` knots at score quantiles, blended with a ramp by :data:`TIE_BREAK` so that it rises
+    strictly (each level moves by at most that much)."""
     score = np.asarray(score, np.float64).ravel()
     correct = np.asarray(correct, bool).ravel()
-    if score.shape != correct.shape or score.size < 2 * max_knots:
-        raise ShapeError(f"need as many scores as labels, at least {2 * max_knots}; got "
-                         f"{score.size} and {correct.size}")
+    if score.shape != correct.shape:
+        raise ShapeError(f"need as many scores as labels, got {score.size} and {correct.size}")
+    finite = np.isfinite(score)
+    score, correct = score[finite], correct[finite]
+    if score.size < 2 * max_knots:
+        raise ShapeError(f"need at least {2 * max_knots} pixels with a finite score, got {score.size}")
     order = np.argsort(score, kind="stable")
     score, correct = score[order], correct[order].astype(np.float64)
     # blocks of equal size along the score (so that each level rests on many pixels), then PAV
@@ -192,16 +213,19 @@ class Reliability:
 
 
 def reliability(prob: np.ndarray, correct: np.ndarray, bins: int = 10) -> Reliability:
-    """:class:`Reliability` of probabilities ``prob`` against outcomes ``correct`` (same shape)."""
-    prob = np.clip(np.asarray(prob, np.float64).ravel(), 0.0, 1.0)
+    """:class:`Reliability` of probabilities ``prob`` against outcomes ``correct`` (same shape; pixels
+    with a non-finite probability are left out; ``ece`` is NaN when none is left)."""
+    prob = np.asarray(prob, np.float64).ravel()
     correct = np.asarray(correct, bool).ravel()
     if prob.shape != correct.shape:
         raise ShapeError(f"prob {prob.shape} and correct {correct.shape} must match")
+    finite = np.isfinite(prob)
+    prob, correct = np.clip(prob[finite], 0.0, 1.0), correct[finite]
     edges = np.linspace(0.0, 1.0, bins + 1)
     which = np.clip(np.digitize(prob, edges) - 1, 0, bins - 1)
     count = np.bincount(which, minlength=bins)
     pred = np.bincount(which, prob, bins) / np.maximum(count, 1)
     obs = np.bincount(which, correct.astype(np.float64), bins) / np.maximum(count, 1)
-    ece = float((np.abs(pred - obs) * count).sum() / max(count.sum(), 1))
+    ece = float((np.abs(pred - obs) * count).sum() / count.sum()) if count.sum() else float("nan")
     return Reliability(tuple(edges.tolist()), tuple(int(c) for c in count), tuple(pred.tolist()),
                        tuple(obs.tolist()), ece)

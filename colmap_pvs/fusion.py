@@ -468,7 +468,7 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
             np.float32
         )
         conf_path = ws.confidence_map_path(name, config.input_type)
-        if not conf_path.is_file():  # maps written before confidences were stored per kind
+        if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
             conf_path = ws.confidence_map_path(name)
         if config.min_confidence > 0 and conf_path.is_file():
             conf = read_array(conf_path)

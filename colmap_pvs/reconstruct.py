@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from .confidence import calibration_path
+from .confidence import calibration_path, load_calibration
 from .config import config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
@@ -256,12 +256,19 @@ def _sha256_or_none(path: Path) -> str | None:
     return file_sha256(path) if path.is_file() else None
 
 
+def _calibration_sha256(checkpoint: Path) -> str | None:
+    """Hash of the curves of ``checkpoint``'s confidence calibration (what its confidence maps depend
+    on); ``None`` without one."""
+    path = calibration_path(checkpoint)
+    return load_calibration(path).sha256() if path.is_file() else None
+
+
 def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
     values = {
         "photos": _photos_fingerprint(Path(config.image_path), names),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint_sha256": _sha256_or_none(checkpoint),
-        "calibration_sha256": _sha256_or_none(calibration_path(checkpoint)),  # the confidence maps'
+        "calibration_sha256": _calibration_sha256(checkpoint),
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
         "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
     }
@@ -295,10 +302,12 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
             old = recorded.get(key)
             if key == "stereo" and isinstance(old, dict):  # a setting it did not record: not changed
                 differs = any(k in old and old[k] != v for k, v in new.items())
+            elif key == "calibration_sha256":  # recorded since the confidence is calibrated; before: none
+                differs = old != new
             else:
                 differs = key in recorded and old != new
             if differs:
-                changes.append((stage, _describe_change(key, recorded[key], new)))
+                changes.append((stage, _describe_change(key, recorded.get(key), new)))
     if changes:
         first = min(STAGES.index(stage) for stage, _ in changes)
         redo = STAGES[first:]

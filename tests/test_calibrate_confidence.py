@@ -10,6 +10,7 @@ import pytest
 from conftest import load_tool
 
 from colmap_pvs.confidence import load_calibration, reliability
+from colmap_pvs.io.files import file_sha256
 from colmap_pvs.io.maps import read_array, read_depth_map
 
 
@@ -20,13 +21,19 @@ def tool():
 
 def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tmp_path, tiny_checkpoint,
                                                         capsys):
+    """The documented procedure: raw maps from a checkpoint without a calibration, fit photometric and
+    geometric, stereo again with them, fit filled on top; every step refuses maps of the wrong kind."""
     from scenes import render_view, stereo_config
 
     from colmap_pvs.stereo import run_stereo
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
-    run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4, max_image_size=0))
+    checkpoint = tmp_path / "model" / "tiny.pt"
+    checkpoint.parent.mkdir()
+    shutil.copy(tiny_checkpoint, checkpoint)
+    cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0)
+    run_stereo(cfg)
     gt = ws / "gt"
     gt.mkdir()
     for name in analytic_scene["names"]:
@@ -34,13 +41,14 @@ def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tm
         K = analytic_scene["map_K"][name]
         view = render_view(analytic_scene["scene"], K, im.cam_from_world, 160, 120)
         np.save(gt / f"{name}.npy", view["depth"].astype(np.float32))
-    out = tmp_path / "cal.json"
-    assert tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}",
-                      "--kinds", "photometric", "geometric", "--tolerance", "0.1", "--data", "analytic",
-                      "--out", str(out)]) == 0
+    out = checkpoint.with_name("tiny.calibration.json")
+    common = ["--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}"]
+    assert tool.main(["fit", *common, "--kinds", "photometric", "geometric", "--tolerance", "0.1",
+                      "--data", "analytic", "--out", str(out)]) == 0
     cal = load_calibration(out)
     assert set(cal.curves) == {"photometric", "geometric"} and cal.tolerance == 0.1
     assert cal.fit["photometric"]["data"] == "analytic" and cal.fit["photometric"]["workspaces"] == ["ws"]
+    assert cal.fit["geometric"]["checkpoint_sha256"] == file_sha256(checkpoint)
     # the fitted photometric curve predicts the share of right pixels of these maps (in-sample)
     conf, right = [], []
     for name in analytic_scene["names"]:
@@ -54,15 +62,24 @@ def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tm
     fitted = cal.apply("photometric", conf, np.ones(conf.shape, bool))
     assert abs(fitted.mean() - right.mean()) < 0.02
     assert reliability(fitted, right).ece < 0.05
-    # fit the completion on top, keeping the others' curves; then check
-    assert tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}", "--kinds",
-                      "filled", "--tolerance", "0.1", "--start", str(out), "--out", str(out)]) == 0
+    # raw maps are checked only through --apply; the filled maps still hold raw-made scores
+    with pytest.raises(SystemExit, match="raw scores"):
+        tool.main(["check", *common])
+    with pytest.raises(SystemExit, match="other curves than|another calibration"):
+        tool.main(["fit", *common, "--kinds", "filled", "--tolerance", "0.1", "--start", str(out),
+                   "--out", str(out)])
+    run_stereo(cfg)  # the curves beside the checkpoint: calibrated photometric and geometric maps
+    with pytest.raises(SystemExit, match="calibrated confidences"):
+        tool.main(["fit", *common, "--kinds", "geometric", "--out", str(tmp_path / "x")])
+    assert tool.main(["fit", *common, "--kinds", "filled", "--tolerance", "0.1", "--start", str(out),
+                      "--out", str(out)]) == 0
     assert set(json.loads(out.read_text())["curves"]) == {"photometric", "geometric", "filled"}
+    run_stereo(cfg)
     capsys.readouterr()
-    assert tool.main(["check", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}",
-                      "--apply", str(out), "--calibration", str(out)]) == 0
+    assert tool.main(["check", *common]) == 0
     printed = capsys.readouterr().out
     assert printed.count("ECE") == 3 and "within 0.1" in printed
+    with pytest.raises(SystemExit, match="calibrated already"):
+        tool.main(["check", *common, "--apply", str(out)])
     with pytest.raises(SystemExit, match="another tolerance"):
-        tool.main(["fit", "--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}", "--kinds",
-                   "filled", "--start", str(out), "--out", str(tmp_path / "other.json")])
+        tool.main(["fit", *common, "--kinds", "filled", "--start", str(out), "--out", str(tmp_path / "o")])

@@ -18,7 +18,7 @@ from colmap_pvs.confidence import (
     load_calibration,
     reliability,
 )
-from colmap_pvs.errors import ConfigError
+from colmap_pvs.errors import ConfigError, ShapeError
 
 
 def test_reliability_is_zero_for_honest_probabilities_and_the_gap_for_overconfident_ones():
@@ -52,6 +52,20 @@ def test_fitted_curve_pools_a_score_that_does_not_rank():
     assert np.mean(curve.prob) == pytest.approx(0.3, abs=0.02)
 
 
+def test_fit_curve_leaves_out_non_finite_scores_and_needs_enough_pixels():
+    rng = np.random.default_rng(3)
+    score = rng.random(5000)
+    correct = rng.random(score.size) < score
+    score[:100] = np.nan
+    curve = fit_curve(score, correct)
+    assert np.isfinite(curve.score).all() and np.isfinite(curve.prob).all()
+    with pytest.raises(ShapeError, match="at least 96 pixels with a finite score"):
+        fit_curve(np.full(200, np.nan), np.ones(200, bool))
+    one = fit_curve(np.full(1000, 0.3), np.arange(1000) % 4 == 0)  # one score value: the base rate
+    assert len(one.score) == 1 and one.prob[0] == pytest.approx(0.25, abs=1e-3)
+    assert np.isnan(reliability(np.zeros(0), np.zeros(0, bool)).ece)  # nothing to check: not "perfect"
+
+
 def test_apply_maps_valid_pixels_and_keeps_kinds_without_a_curve_as_they_are():
     cal = calibration_from_dict({"tolerance": 0.05,
                                  "curves": {"geometric": {"score": [0.0, 1.0], "prob": [0.5, 0.9]}}})
@@ -59,6 +73,8 @@ def test_apply_maps_valid_pixels_and_keeps_kinds_without_a_curve_as_they_are():
     valid = np.array([[True, True], [True, False]])
     np.testing.assert_allclose(cal.apply("geometric", score, valid), [[0.5, 0.7], [0.9, 0.0]])
     np.testing.assert_allclose(cal.apply("geometric", score), [[0.0, 0.7], [0.9, 0.9]])  # valid: score > 0
+    nan = np.array([[np.nan, 0.5]], np.float32)  # a non-finite score is no probability
+    np.testing.assert_allclose(cal.apply("geometric", nan, np.ones((1, 2), bool)), [[0.0, 0.7]])
     np.testing.assert_array_equal(cal.apply("photometric", score), score)
     np.testing.assert_array_equal(RAW.apply("filled", score), score)
     with pytest.raises(ConfigError, match="unknown kind"):
@@ -71,8 +87,13 @@ def test_bad_calibration_files_are_refused_naming_the_file(tmp_path):
     with pytest.raises(ConfigError, match=r"cal\.json.*unknown kinds \['fused'\]"):
         load_calibration(path)
     path.write_text(json.dumps({"tolerance": 0.05, "curves": {"filled": {"score": [1, 0], "prob": [0, 1]}}}))
-    with pytest.raises(ConfigError, match="cal.json: bad curve"):
+    with pytest.raises(ConfigError, match="cal.json: bad tolerance or curve"):
         load_calibration(path)
+    for bad in ({"tolerance": "five", "curves": {}}, {"tolerance": 0.05, "curves": [1]},
+                {"tolerance": 0.05, "curves": {"filled": {"score": [0, float("nan")], "prob": [0, 1]}}}):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(ConfigError, match="cal.json"):
+            load_calibration(path)
     path.write_text("{")
     with pytest.raises(ConfigError, match="cannot read the confidence calibration"):
         load_calibration(path)
@@ -141,7 +162,8 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
             np.testing.assert_allclose(c[valid], cal.curves[kind](c_raw[valid]), atol=1e-6)
             assert np.all(c[~valid] == 0)
     for d, c in maps("filled").values():
-        assert np.all((c[d > 0] >= 0.05) & (c[d > 0] <= 0.15))
+        assert (d > 0).all()  # a depth everywhere, each through the filled curve
+        assert np.all((c >= 0.05) & (c <= 0.15)) and c.max() > c.min()
     prov = json.loads((ws / "stereo" / "provenance" / f"{names[0]}.geometric.json").read_text())
     assert prov["settings"]["confidence_calibration"]["prob"] == [0.2, 0.8, 0.9]
     again = run_stereo(cfg)
@@ -152,3 +174,11 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
     res = run_stereo(cfg)
     assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
     assert sorted(res.filled_processed) == sorted(names)
+    # min_confidence is a probability: 0.2 on the curve 0.1 -> 0.3 keeps the raw scores >= 0.5
+    from colmap_pvs.config import replace_config
+
+    run_stereo(replace_config(cfg, min_confidence=0.2))
+    for n, (d, c) in maps("photometric").items():
+        d_raw, c_raw = raw["photometric"][n]
+        np.testing.assert_array_equal(d > 0, (d_raw > 0) & (c_raw >= 0.5))
+        assert np.all(c[d > 0] >= 0.2) and np.all(c[d == 0] == 0)

@@ -305,7 +305,8 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     net, ckpt_path, _meta = load_stereo_model(config, device)
-    calibration = checkpoint_calibration(ckpt_path)  # the trained checkpoint's, also when adapted below
+    # the trained checkpoint's calibration, also for its test-time adaptation below (not refitted)
+    calibration = checkpoint_calibration(ckpt_path, file_sha256(ckpt_path))
     adapt_seconds = 0.0
     if config.adapt.steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
         net, ckpt_path, adapt_seconds = adapt_network(config, ws, ckpt_path, device)

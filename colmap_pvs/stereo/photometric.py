@@ -123,6 +123,7 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
     t0 = time.perf_counter()
     normals = depth_to_normals(depth, ctx.map_K(name, size))
     depth[~np.any(normals != 0, axis=-1)] = 0.0
+    conf = np.where(depth > 0, conf, 0.0).astype(np.float32)  # 0 on invalid pixels
     timings["normals"] = time.perf_counter() - t0
     return NetworkMaps(depth, normals, conf, vis)
 
