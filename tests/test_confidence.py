@@ -14,11 +14,13 @@ from colmap_pvs.confidence import (
     Curve,
     calibration_from_dict,
     calibration_path,
+    checkpoint_calibration,
     fit_curve,
     load_calibration,
     reliability,
 )
 from colmap_pvs.errors import ConfigError, ShapeError
+from colmap_pvs.io.files import file_sha256
 
 
 def test_reliability_is_zero_for_honest_probabilities_and_the_gap_for_overconfident_ones():
@@ -111,6 +113,22 @@ def test_shipped_calibration_has_a_rising_curve_for_every_kind():
         curve = cal.curves[kind]
         assert np.all(np.diff(curve.prob) > 0) and 0 <= curve.prob[0] and curve.prob[-1] <= 1
         assert kind in cal.fit  # where each curve comes from
+        assert cal.fit[kind]["checkpoint_sha256"] == file_sha256(DEFAULT_CHECKPOINT)  # new weights: refit
+
+
+def test_a_calibration_fitted_for_other_weights_is_used_with_a_warning(tmp_path, caplog):
+    checkpoint = tmp_path / "w.pt"
+    checkpoint.write_bytes(b"weights")
+    assert checkpoint_calibration(checkpoint) is RAW and "no confidence calibration" in caplog.text
+    calibration_path(checkpoint).write_text(json.dumps({
+        "tolerance": 0.05, "curves": {"geometric": {"score": [0, 1], "prob": [0.5, 0.9]}},
+        "fit": {"geometric": {"checkpoint_sha256": "0" * 64}}}))
+    caplog.clear()
+    cal = checkpoint_calibration(checkpoint, file_sha256(checkpoint))
+    assert set(cal.curves) == {"geometric"} and "fitted for other weights" in caplog.text
+    caplog.clear()
+    checkpoint_calibration(checkpoint, "0" * 64)
+    assert "fitted for other weights" not in caplog.text
 
 
 def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(analytic_scene, tmp_path,
