@@ -200,3 +200,27 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
         d_raw, c_raw = raw["photometric"][n]
         np.testing.assert_array_equal(d > 0, (d_raw > 0) & (c_raw >= 0.5))
         assert np.all(c[d > 0] >= 0.2) and np.all(c[d == 0] == 0)
+
+
+def test_cascade_confidence_is_the_masses_of_the_final_and_coarse_stages_and_their_agreement():
+    import torch
+
+    from colmap_pvs.model.pvsnet import PVSNetOutput
+    from colmap_pvs.stereo.network import STAGE_AGREEMENT_SCALE, cascade_confidence
+
+    H, W = 8, 8
+    depth = torch.full((1, H, W), 2.0)
+    prev = torch.full((1, H // 2, W // 2), 2.0)
+    prev[:, :, 2:] = 2.0 / 1.05  # the right half: the previous stage 5 % nearer
+    coarse = [torch.full((1, H // 4, W // 4), 0.5)] * 3
+    vis = torch.ones(1, 4, 2, 2)
+    out = PVSNetOutput(depth=depth, confidence=torch.full((1, H, W), 0.8), visibility=vis,
+                       depths=[torch.full((1, 2, 2), 2.0)] * 3 + [prev, depth],
+                       confidences=coarse + [torch.full((1, 4, 4), 0.9), torch.full((1, H, W), 0.8)])
+    score = cascade_confidence(out, (4, 4, 4, 2, 1))[0].numpy()
+    np.testing.assert_allclose(score[:, :3], 0.8 * 0.5, rtol=1e-5)
+    disagree = 0.8 * 0.5 * np.exp(-np.log(1.05) / STAGE_AGREEMENT_SCALE)
+    np.testing.assert_allclose(score[:, 5:], disagree, rtol=1e-4)
+    single = PVSNetOutput(depth=depth, confidence=torch.full((1, H, W), 0.7), visibility=vis,
+                          depths=[torch.full((1, 2, 2), 2.0)] * 3, confidences=coarse)
+    np.testing.assert_allclose(cascade_confidence(single, (4, 4, 4))[0].numpy(), 0.7)  # no cascade: the mass

@@ -53,6 +53,34 @@ def load_stereo_model(config: StereoConfig, device: torch.device):
     return model, path, meta
 
 
+#: Relative difference between the final depth and the previous cascade stage's at which the photometric
+#: score falls by ``1 / e`` (:func:`cascade_confidence`).
+STAGE_AGREEMENT_SCALE = 0.05
+
+
+def cascade_confidence(out, output_scales: tuple[int, ...]) -> torch.Tensor:
+    """``[B, H, W]`` the photometric score of a network output before the prior: the final stage's
+    probability mass around its estimate, times the coarse stage's (the last output at the coarsest
+    scale), times ``exp(-|log(d / d_prev)| / STAGE_AGREEMENT_SCALE)`` with ``d_prev`` the previous
+    cascade stage's depth (both bilinearly upsampled; a network without a cascade: its mass alone).
+    The stages see the cost at different resolutions, so where they disagree the depth is often
+    wrong (chosen on hololens-dev offset 0 and checked on offset 1: ``benchmarks/RESULTS.md``)."""
+    import torch.nn.functional as F
+
+    conf = out.confidence
+    staged = out.confidences is not None and len(output_scales) == len(out.depths) == len(out.confidences)
+    if not staged or len(out.depths) < 2 or output_scales[-1] == max(output_scales):
+        return conf
+    size = conf.shape[-2:]
+
+    def up(t):
+        return F.interpolate(t[:, None].float(), size=size, mode="bilinear", align_corners=False)[:, 0]
+
+    coarse = max(i for i, s in enumerate(output_scales) if s == max(output_scales))
+    ratio = out.depth.clamp_min(1e-12) / up(out.depths[-2]).clamp_min(1e-12)
+    return conf * up(out.confidences[coarse]) * torch.exp(-ratio.log().abs() / STAGE_AGREEMENT_SCALE)
+
+
 def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, device):
     """Run the network on one reference.
 
@@ -62,7 +90,8 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
         depth_range: ``(d_min, d_max)``; sparse_depth: ``[H, W]`` (0 = no point).
 
     Returns:
-        depth ``[H, W]``, confidence ``[H, W]``, coarse visibility ``[N-1, ceil(H/4), ceil(W/4)]`` and
+        depth ``[H, W]``, score ``[H, W]`` (:func:`cascade_confidence`), coarse visibility
+        ``[N-1, ceil(H/4), ceil(W/4)]`` and
         the sparse prior's coarse depth ``[ceil(H/4), ceil(W/4)]`` (``None`` without one), numpy.
     """
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)[None]  # noqa: E731
@@ -77,4 +106,5 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
         )
     vis = out.visibility[0].float().cpu().numpy()
     prior = None if out.prior_depth is None else out.prior_depth[0].float().cpu().numpy()
-    return out.depth[0].cpu().numpy(), out.confidence[0].cpu().numpy(), vis, prior
+    conf = cascade_confidence(out, model.config.output_scales)
+    return out.depth[0].cpu().numpy(), conf[0].float().cpu().numpy(), vis, prior
