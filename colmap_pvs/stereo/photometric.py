@@ -1,8 +1,9 @@
 """The photometric pass: the network's depth, normal, confidence and visibility maps of a reference.
 
 Writes ``stereo/{depth,normal,confidence}_maps/NAME.photometric.bin`` (flat image regions moved
-towards the sparse prior, :mod:`colmap_pvs.prior`; the confidence is the network's probability mass
-times its agreement with that prior, calibrated by :mod:`colmap_pvs.confidence`) and
+towards the sparse prior, :mod:`colmap_pvs.prior`; the confidence is the network's score,
+:func:`~colmap_pvs.stereo.network.cascade_confidence`, times its agreement with that prior, calibrated by
+:mod:`colmap_pvs.confidence`) and
 ``stereo/visibility_maps/NAME.bin`` (the learned per-source visibility, ``[h/4, w/4, S]`` at the
 network size, sources in the provenance file).
 """
