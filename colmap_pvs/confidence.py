@@ -1,7 +1,7 @@
 """Calibrated confidence: every confidence map holds the probability that its depth is right.
 
-Each pass first scores its pixels (the photometric pass by the network's probability mass and its
-agreement with the sparse prior, the geometric pass by the visibility- and parallax-weighted share of
+Each pass first scores its pixels (the photometric pass by the network's cascade, its stages' probability
+masses and agreement, and its agreement with the sparse prior, the geometric pass by the visibility- and parallax-weighted share of
 confirming sources, the completion by how a pixel was made; ``docs/CONVENTIONS.md``). A score ranks the
 pixels of its own kind but means nothing across kinds. A :class:`Calibration` turns the score of each
 kind into ``P(|d - d_true| <= tolerance * d_true)`` (``tolerance`` 5 %) by a monotone piecewise-linear
