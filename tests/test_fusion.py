@@ -239,6 +239,12 @@ def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace
     assert np.median(np.sum(cloud.normals * true_n, axis=1)) > 0.99  # fitted, not read
     with pytest.raises(ConfigError, match="input_type 'filled' needs method 'pvs'"):
         FuseConfig(workspace_path=workspace, input_type="filled", method="colmap")
+    # a legacy per-image confidence (NAME.bin, the geometric maps' of old runs) never filters them
+    for name in gt["names"]:
+        h, w = read_depth_map(maps / f"{name}.filled.bin").shape
+        write_array(workspace / "stereo" / "confidence_maps" / f"{name}.bin", np.zeros((h, w), np.float32))
+    kept = fuse(FuseConfig(workspace_path=workspace, input_type="filled", min_confidence=0.5))
+    assert kept.num_points == result.num_points
 
 
 def test_missing_maps(workspace, analytic_scene):
