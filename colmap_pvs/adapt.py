@@ -64,10 +64,12 @@ class AdaptConfig:
     )
 
     def __post_init__(self) -> None:
-        kinds = ("none", "geometric", "filled")  # the maps a workspace's own stereo run writes
-        if self.pseudo_labels not in kinds:
+        from .train.real_dataset import STEREO_PSEUDO_LABEL_KINDS
+
+        if self.pseudo_labels not in STEREO_PSEUDO_LABEL_KINDS:
             raise ConfigError(
-                f"AdaptConfig: pseudo_labels must be one of {kinds}, got {self.pseudo_labels!r}"
+                f"AdaptConfig: pseudo_labels must be one of {STEREO_PSEUDO_LABEL_KINDS}, "
+                f"got {self.pseudo_labels!r}"
             )
         if self.steps < 0 or not self.max_seconds >= 0:
             raise ConfigError(

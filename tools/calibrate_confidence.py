@@ -52,6 +52,7 @@ from colmap_pvs.evaluate.depth import find_gt_depth, read_gt_depth
 from colmap_pvs.io.maps import read_array, read_depth_map
 from colmap_pvs.io.workspace import detect_workspace
 from colmap_pvs.stereo.config import CONFIG_FILENAME
+from colmap_pvs.stereo.outputs import read_provenance
 from colmap_pvs.upsampling import resize_nearest
 
 logger = logging.getLogger("calibrate_confidence")
@@ -73,11 +74,10 @@ class Pixels:
 
 def _provenance_curve(ws, name: str, kind: str) -> str:
     """The calibration of ``name``'s ``kind`` map from its provenance, as JSON (``"null"``: raw)."""
-    try:
-        settings = json.loads((ws.stereo_dir / "provenance" / f"{name}.{kind}.json").read_text())["settings"]
-    except (OSError, ValueError, KeyError) as exc:
-        raise SystemExit(f"{ws.root}: no readable provenance for {name!r} {kind}: {exc}") from None
-    return json.dumps(settings.get("confidence_calibration"), sort_keys=True)
+    prov = read_provenance(ws, name, kind)
+    if prov is None or "settings" not in prov:
+        raise SystemExit(f"{ws.root}: no readable provenance for {name!r} {kind}")
+    return json.dumps(prov["settings"].get("confidence_calibration"), sort_keys=True)
 
 
 def gather(ws_path: Path, kind: str, args) -> Pixels:

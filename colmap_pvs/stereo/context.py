@@ -305,11 +305,13 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     net, ckpt_path, _meta = load_stereo_model(config, device)
+    ckpt_sha256 = file_sha256(ckpt_path)
     # the trained checkpoint's calibration, also for its test-time adaptation below (not refitted)
-    calibration = checkpoint_calibration(ckpt_path, file_sha256(ckpt_path))
+    calibration = checkpoint_calibration(ckpt_path, ckpt_sha256)
     adapt_seconds = 0.0
     if config.adapt.steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
         net, ckpt_path, adapt_seconds = adapt_network(config, ws, ckpt_path, device)
+        ckpt_sha256 = file_sha256(ckpt_path)
     selection: ViewSelection = select_views(
         model_sparse,
         ViewSelectionConfig(num_views=config.photometric.num_views),
@@ -321,7 +323,7 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
         sparse=model_sparse,
         net=net,
         checkpoint_path=ckpt_path,
-        checkpoint_sha256=file_sha256(ckpt_path),
+        checkpoint_sha256=ckpt_sha256,
         calibration=calibration,
         device=device,
         selection=selection,

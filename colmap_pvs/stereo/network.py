@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..config import replace_config
 from ..errors import CheckpointError, ColmapPVSError
@@ -65,8 +66,6 @@ def cascade_confidence(out, output_scales: tuple[int, ...]) -> torch.Tensor:
     cascade stage's depth (both bilinearly upsampled; a network without a cascade: its mass alone).
     The stages see the cost at different resolutions, so where they disagree the depth is often
     wrong (chosen on hololens-dev offset 0 and checked on offset 1: ``benchmarks/RESULTS.md``)."""
-    import torch.nn.functional as F
-
     conf = out.confidence
     staged = out.confidences is not None and len(output_scales) == len(out.depths) == len(out.confidences)
     if not staged or len(out.depths) < 2 or output_scales[-1] == max(output_scales):

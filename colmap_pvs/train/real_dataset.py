@@ -75,8 +75,10 @@ REAL_SAMPLE_KEYS = (
     "is_real",
 )
 
+#: Kinds of pseudo-label a workspace's own ``colmap-pvs stereo`` run provides (test-time adaptation).
+STEREO_PSEUDO_LABEL_KINDS = ("none", "geometric", "filled")
 #: Kinds of pseudo-label a real root can provide (``RealDatasetConfig.pseudo_labels``).
-PSEUDO_LABEL_KINDS = ("none", "geometric", "filled", "teacher")
+PSEUDO_LABEL_KINDS = (*STEREO_PSEUDO_LABEL_KINDS, "teacher")
 
 
 def _pair(name: str, value) -> tuple[float, float]:
