@@ -15,7 +15,7 @@ model, references and sources; a ``hololens_quick.py --stride 3 --tag TAG`` work
 2. The clouds scored: ``pvs`` (``colmap_pvs.fusion.fuse`` with its defaults: what ``colmap-pvs fuse``
    writes), ``colmap`` (Debian COLMAP's ``colmap stereo_fusion --input_type geometric`` with its
    defaults; multi-threaded, so its point count varies by a few hundred points from run to run),
-   ``pvs_photometric`` and ``pvs_filled`` (``fuse`` of the network maps or of the dense completion);
+   ``pvs_geometric`` and ``pvs_photometric`` (``fuse`` of the geometric or the network maps);
    ``--fusions`` picks.
 3. The score, ETH3D-style (:func:`frustum_cloud_score`, on :func:`colmap_pvs.evaluate.cloud_metrics`,
    voxel-normalised at 1 cm as ETH3D's program): completeness = share of GT points within t of the
@@ -60,7 +60,7 @@ from colmap_pvs.upsampling import resize_nearest
 from colmap_pvs.views import ViewSelectionConfig, select_views
 
 THRESHOLDS = (0.02, 0.05, 0.10)
-FUSIONS = ("pvs", "colmap", "pvs_photometric", "pvs_filled")
+FUSIONS = ("pvs", "colmap", "pvs_geometric", "pvs_photometric")
 
 
 # --------------------------------------------------------------------------- scoring
@@ -186,7 +186,7 @@ def run_fusion(kind: str, ws: Path, colmap: str, fuse_overrides: dict | None = N
     else:
         from colmap_pvs.fusion import FuseConfig, fuse
 
-        input_type = {"pvs_photometric": "photometric", "pvs_filled": "filled"}.get(kind, "geometric")
+        input_type = {"pvs_geometric": "geometric", "pvs_photometric": "photometric"}.get(kind, "auto")
         settings = {"workspace_path": ws, "output_path": out, "input_type": input_type,
                     **(fuse_overrides or {})}
         fuse(config_from_dict(FuseConfig, settings))

@@ -19,6 +19,12 @@ measured on hololens-dev (``benchmarks/RESULTS.md``):
    into the wall; planar-prior stereo (ACMP, Xu & Tao 2020) builds its prior from its reliable pixels
    the same way.
 
+A completed depth needs support: a segment whose inliers cover under :data:`SEGMENT_MIN_SUPPORT` of
+its area, or a fitted pixel with under :data:`FIT_MIN_SUPPORT` known pixels around it
+(:func:`fit_support`), is *unsupported*; the stereo step writes the network's depth there with
+confidence 0, which ``fuse`` never fuses (on colmap-statue these pixels drew the background beyond the
+depth range as sheets and streaks).
+
 The stereo step hands these functions the *seeds* of the geometric pass as the kept pixels (those
 that 3 sources agree with within 2.5 %, ``stereo/seed_maps``: 67.1 -> 69.8 % within 5 % on
 hololens-dev, ``benchmarks/RESULTS.md``), of the reference and of its sources. Every kept pixel
@@ -71,6 +77,17 @@ SEGMENT_MAX_EXTRAPOLATION = 1.25
 #: Smallest spread (standard deviation, pixels) of a segment's inliers across their weakest axis:
 #: below it they lie on a line and the plane's tilt across it is a guess.
 SEGMENT_MIN_SPREAD = 2.0
+
+#: Least share of a segment's area its inliers must cover: a large region with a few known specks
+#: (a background beyond the depth range, where only chance matches pass the check) gets no plane, and
+#: its pixels get no completed depth either (:func:`segment_planes`' ``refused``).
+SEGMENT_MIN_SUPPORT = 0.05
+
+#: Window of :func:`fit_support`, as a fraction of the image width (61 pixels at 540).
+FIT_SUPPORT_WINDOW = 0.113
+
+#: Least share of known pixels in that window for the local plane fit to give a pixel its depth.
+FIT_MIN_SUPPORT = 0.01
 
 
 def _pooled_inverse_depth(kept: np.ndarray, factor: int) -> np.ndarray:
@@ -136,6 +153,22 @@ def complete_depth(
     return np.where(kept > 0, kept, fill).astype(np.float32)
 
 
+def fit_support(known: np.ndarray) -> np.ndarray:
+    """``[H, W]`` float32 share of known pixels (``> 0`` and finite) in the square of side
+    :data:`FIT_SUPPORT_WINDOW` x the image width around each pixel (reflected at the borders).
+
+    The local plane fit of :func:`complete_depth` extends whatever is known into any gap, however
+    wide; where less than :data:`FIT_MIN_SUPPORT` of the window is known its plane is a guess.
+    """
+    import cv2
+
+    if known.ndim != 2:
+        raise ShapeError(f"known must be [H, W], got {known.shape}")
+    win = max(3, int(FIT_SUPPORT_WINDOW * known.shape[1]) | 1)
+    has = (np.isfinite(known) & (known > 0)).astype(np.float32)
+    return cv2.boxFilter(has, -1, (win, win), normalize=True, borderType=cv2.BORDER_REFLECT)
+
+
 #: Scales of the plane fit that :func:`plane_deviation` compares a pixel with (cells of 4 pixels).
 DEVIATION_SIGMAS = (2.0, 3.0, 4.0, 6.0, 8.0)
 
@@ -175,8 +208,9 @@ def _segment_planes_once(
     inv: np.ndarray, targets: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int,
     min_inliers: float, guard: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none) and inlier fraction,
-    for the segments that hold a target pixel (``grey``: the blurred uint8 image)."""
+    """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none), inlier fraction and the
+    target pixels of segments too thinly supported for a plane (``SEGMENT_MIN_SUPPORT``), for the
+    segments that hold a target pixel (``grey``: the blurred uint8 image)."""
     import cv2
 
     H, W = inv.shape
@@ -190,7 +224,7 @@ def _segment_planes_once(
     rows, cols = np.nonzero(known)
     none = np.zeros((H, W)), np.zeros((H, W), np.float32)
     if not rows.size:
-        return none
+        return none + (np.zeros((H, W), bool),)
     order = np.argsort(labels[rows, cols], kind="stable")
     rows, cols = krows, kcols = rows[order], cols[order]
     lab = labels[rows, cols]
@@ -215,9 +249,15 @@ def _segment_planes_once(
     z_in = np.where(inlier, z, np.nan)
     lo, hi = np.fmin.reduceat(z_in, starts), np.fmax.reduceat(z_in, starts)
     fraction = m[:, 0] / sizes
+    area = np.bincount(labels.ravel(), minlength=count)[segs]
+    thin = m[:, 0] < SEGMENT_MIN_SUPPORT * area  # a few specks in a large region pin no plane
     good = (fraction >= min_inliers) & (weakest * W * W >= SEGMENT_MIN_SPREAD**2)
+    refused = np.zeros((H, W), bool)
+    if (good & thin).any():
+        refused = np.isin(labels, segs[good & thin]) & targets
+    good &= ~thin
     if not good.any():
-        return none
+        return none + (refused,)
     if guard:  # known pixels of the accepted segments on / off their plane, counted around each pixel
         on = good[idx]
         tally = np.zeros((2, H, W), np.float32)
@@ -241,7 +281,7 @@ def _segment_planes_once(
     plane_inv, frac = none
     plane_inv[rows[ok], cols[ok]] = out[ok]
     frac[rows[ok], cols[ok]] = fraction[k[ok]]
-    return plane_inv, frac
+    return plane_inv, frac, refused
 
 
 def segment_planes(
@@ -263,7 +303,10 @@ def segment_planes(
     gives its depth to every pixel of the region where at least ``min_inliers`` of its known pixels
     lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
     (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within :data:`SEGMENT_MAX_EXTRAPOLATION` of their
-    depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit). The
+    depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit). A
+    region whose inliers cover less than :data:`SEGMENT_MIN_SUPPORT` of its area gives no plane and its
+    pixels are ``refused``: on colmap-statue the background beyond the depth range is one such region,
+    whose few chance specks drew sheets and streaks around the statue (``benchmarks/RESULTS.md``). The
     segmentations go from fine to coarse; a pixel takes the finest region that gives it a depth.
     The coarsest one's regions (when there are at least two segmentations) can span two surfaces
     whose boundary shows only a weak edge (an occlusion edge of one colour), so there a pixel also
@@ -280,8 +323,10 @@ def segment_planes(
         min_pixels: known pixels a region needs; min_inliers: the fraction of them on its plane.
 
     Returns:
-        depth ``[H, W]`` float32 (0 where no region gives one, and off the targets) and ``[H, W]``
-        float32 the inlier fraction of the region that gave it (0 where none).
+        depth ``[H, W]`` float32 (0 where no region gives one, and off the targets), ``[H, W]``
+        float32 the inlier fraction of the region that gave it (0 where none), and ``[H, W]`` bool
+        the targets whose finest fitting region was refused because its inliers cover less than
+        :data:`SEGMENT_MIN_SUPPORT` of its area: nothing here supports a depth for them.
     """
     import cv2
 
@@ -302,15 +347,17 @@ def segment_planes(
     inv = np.where(known > 0, 1.0 / np.maximum(known, 1e-12), 0.0)
     depth = np.zeros(known.shape, np.float64)
     fraction = np.zeros(known.shape, np.float32)
+    refused = np.zeros(known.shape, bool)
     todo = targets.copy()
     for i, level in enumerate(thresholds):
         coarsest = i == len(thresholds) - 1 and i > 0
-        plane_inv, frac = _segment_planes_once(inv, todo, grey, level, min_pixels, min_inliers, coarsest)
+        plane_inv, frac, thin = _segment_planes_once(inv, todo, grey, level, min_pixels, min_inliers, coarsest)
         new = todo & (plane_inv > 0)
-        todo &= ~new
+        refused |= todo & thin & ~new
+        todo &= ~(new | thin)
         depth[new] = 1.0 / plane_inv[new]
         fraction[new] = frac[new]
-    return depth.astype(np.float32), fraction
+    return depth.astype(np.float32), fraction, refused
 
 
 def splat_depths(

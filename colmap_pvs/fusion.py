@@ -25,11 +25,14 @@ Two methods:
     (:data:`COLMAP_DEFAULTS`); any ``StereoFusionOptions`` attribute can be overridden
     with ``colmap_options`` ``key=value`` strings (validated at config time).
 
-Input (``input_type``): ``geometric`` (default) or ``photometric`` maps (depth, normals, confidence), or
-for ``pvs`` the dense completion ``filled`` (no normal map: the normals are fitted to its depth,
-:func:`colmap_pvs.normals.fit_normals`). On indoor video (hololens-dev) the completion fuses to F1 69 at
-5 cm against 66 from the geometric maps; around an object (colmap-statue) it adds streaks where the
-completion invents the background, so it is not the default (``benchmarks/RESULTS.md``).
+Input (``input_type``): ``geometric`` or ``photometric`` maps (depth, normals, confidence), or for
+``pvs`` the dense completion ``filled`` (no normal map: the normals are fitted to its depth,
+:func:`colmap_pvs.normals.fit_normals`; its pixels of confidence 0, where nothing supported a
+completed depth, are never fused). ``auto`` (the default) is ``geometric`` for ``colmap``, and for
+``pvs`` ``filled`` where every listed image with geometric maps has a completion (else ``geometric``,
+e.g. maps from COLMAP's ``patch_match_stereo`` or a run without the completion). On indoor video
+(hololens-dev) the completion fuses to F1 69 at 5 cm against 66 from the geometric maps, and around
+an object (colmap-statue) it adds no background the geometric maps lack (``benchmarks/RESULTS.md``).
 
 Pixel convention: maps in ``stereo/`` hold, at pixel ``(col, row)``, the depth along COLMAP's
 integer-centre ray; ours is the same ray written with :func:`colmap_pvs.io.maps.fusion_intrinsics`
@@ -48,7 +51,7 @@ import logging
 import shutil
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -165,10 +168,10 @@ class FuseConfig:
         default="pvs",
         metadata={"help": "pvs: our geometric-consistency fusion; colmap: pycolmap.stereo_fusion"},
     )
-    input_type: Literal["geometric", "photometric", "filled"] = field(
-        default="geometric",
+    input_type: Literal["auto", "geometric", "photometric", "filled"] = field(
+        default="auto",
         metadata={"help": "which maps to fuse (stereo/*_maps/NAME.INPUT_TYPE.bin); filled: the dense "
-                          "completion (pvs only)"},
+                          "completion (pvs only); auto: filled for pvs, geometric for colmap"},
     )
     num_sources: int = field(
         default=8, metadata={"help": "pvs: source views checked per reference (best first)"}
@@ -216,6 +219,8 @@ class FuseConfig:
             raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.cache_size < 1:
             raise ConfigError(f"cache_size must be >= 1, got {self.cache_size}")
+        if self.input_type == "auto" and self.method == "colmap":  # for pvs: by the maps (fuse)
+            object.__setattr__(self, "input_type", "geometric")
         if self.method == "colmap" and self.input_type == "filled":
             raise ConfigError("input_type 'filled' needs method 'pvs': COLMAP's fusion reads geometric or "
                               "photometric maps")
@@ -470,11 +475,13 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         conf_path = ws.confidence_map_path(name, config.input_type)
         if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
             conf_path = ws.confidence_map_path(name)
-        if config.min_confidence > 0 and conf_path.is_file():
+        unsupported = config.input_type == "filled"  # its confidence 0: the network's depth, unsupported
+        if (config.min_confidence > 0 or unsupported) and conf_path.is_file():
             conf = read_array(conf_path)
             if conf.shape[:2] != (h, w):
                 raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
-            depth[conf.reshape(h, w) < config.min_confidence] = 0.0
+            conf = conf.reshape(h, w)
+            depth[(conf < config.min_confidence) | (unsupported & (conf <= 0))] = 0.0
         rgb = load_image(ws.image_path(name))
         if rgb.shape[:2] != (h, w):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
@@ -635,6 +642,11 @@ def fuse(config: FuseConfig) -> FuseResult:
             )
     else:
         listed = all_names
+    if config.input_type == "auto":  # the completion where every image with geometric maps has one
+        geometric = [n for n in listed if ws.depth_map_path(n, "geometric").is_file()]
+        filled = bool(geometric) and all(ws.depth_map_path(n, "filled").is_file() for n in geometric)
+        config = replace(config, input_type="filled" if filled else "geometric")
+        logger.info("fusion: input_type auto -> %s", config.input_type)
     names = []
     for n in listed:
         have = ws.depth_map_path(n, config.input_type).is_file() and (

@@ -65,7 +65,7 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
     # every stereo setting that changes the maps, and the weights by their content, wherever they are
     "stereo": ("stereo", "checkpoint_sha256", "calibration_sha256"),
-    "fusion": ("fusion_method",),
+    "fusion": ("fusion_method", "fusion_input"),
     "mesh": ("mesh", "mesh_depth"),
 }
 _IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm"}
@@ -271,6 +271,9 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
         "calibration_sha256": _calibration_sha256(checkpoint),
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
         "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
+        # the maps `fuse` reads (its input_type auto): the completion, unless COLMAP fuses or it is off
+        "fusion_input": "filled" if config.fusion_method == "pvs" and config.stereo.completion.enabled
+        else "geometric",
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 
@@ -302,7 +305,7 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
             old = recorded.get(key)
             if key == "stereo" and isinstance(old, dict):  # a setting it did not record: not changed
                 differs = any(k in old and old[k] != v for k, v in new.items())
-            elif key == "calibration_sha256":  # recorded since the confidence is calibrated; before: none
+            elif key in ("calibration_sha256", "fusion_input"):  # recorded since: before, none
                 differs = old != new
             else:
                 differs = key in recorded and old != new

@@ -135,7 +135,7 @@ def test_segment_planes_fill_each_wall_with_its_own_plane_from_its_borders():
     rng = np.random.default_rng(0)
     depth, image = _two_walls()
     known = _border_known(depth, rng)
-    out, inliers = segment_planes(known, image)
+    out, inliers, _ = segment_planes(known, image)
     assert out.shape == depth.shape and out.dtype == np.float32 and inliers.dtype == np.float32
     middle = np.zeros(depth.shape, bool)
     middle[12:-12, 12:52], middle[12:-12, 76:-12] = True, True
@@ -151,7 +151,7 @@ def test_segment_planes_fill_each_wall_with_its_own_plane_from_its_borders():
     assert np.abs(fit[near] / depth[near] - 1).max() > 0.05
     assert np.abs(out[near & (known == 0)] / depth[near & (known == 0)] - 1).max() < 0.005
     # Explicit targets: known pixels too (the completion replaces projected ones), or none at all.
-    every, _ = segment_planes(known, image, np.ones(depth.shape, bool))
+    every, _, _ = segment_planes(known, image, np.ones(depth.shape, bool))
     assert (every[middle] > 0).all() and np.abs(every[middle] / depth[middle] - 1).max() < 0.005
     assert not (segment_planes(known, image, np.zeros(depth.shape, bool))[0] > 0).any()
 
@@ -163,7 +163,7 @@ def test_segment_planes_are_robust_to_wrong_known_pixels():
     known = _border_known(depth, rng)
     bad = (known > 0) & (rng.random(depth.shape) < 0.25)
     known[bad] *= rng.uniform(1.1, 1.3, size=bad.sum()).astype(np.float32)
-    out, inliers = segment_planes(known, image)
+    out, inliers, _ = segment_planes(known, image)
     given = out > 0
     unknown = known == 0
     middle = np.zeros(depth.shape, bool)
@@ -184,7 +184,7 @@ def test_segment_planes_are_not_extrapolated_far_beyond_their_support():
     depth = (1.0 / (1.0 - 0.0095 * u)).astype(np.float32)  # 1/d falls along the rows: 1 -> 11 m
     image = np.full((3, H, W), 0.5, np.float32)
     known = np.where(u < 24, depth, 0.0).astype(np.float32)  # the near quarter is known
-    out, _ = segment_planes(known, image)
+    out, _, _ = segment_planes(known, image)
     given = out > 0
     assert np.abs(out[given] / depth[given] - 1).max() < 0.005  # where it is given, it is right
     limit = SEGMENT_MAX_EXTRAPOLATION * known[known > 0].max()
@@ -207,7 +207,7 @@ def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
     line = np.zeros_like(depth)
     line[40, :60] = depth[40, :60]  # the left wall known along one row only
     line[:, 80] = depth[:, 80]  # the right wall known along one column only
-    out, _ = segment_planes(line, image)
+    out, _, _ = segment_planes(line, image)
     assert not (out > 0).any()
     few = np.where(rng.random(depth.shape) < 0.002, depth, 0.0)
     assert (few[:, :64] > 0).sum() < 30 and (few[:, 64:] > 0).sum() < 30  # under min_pixels per wall
@@ -219,13 +219,49 @@ def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
     mixed = _border_known(depth, rng)
     swap = (mixed > 0) & (rng.random(depth.shape) < 0.3)
     mixed[swap] *= 1.5  # 70 % on the true plane: given, exactly, unless the bar is above 70 %
-    out, _ = segment_planes(mixed, image)
+    out, _, _ = segment_planes(mixed, image)
     assert (out[mixed == 0] > 0).mean() > 0.9 and np.abs(out[out > 0] / depth[out > 0] - 1).max() < 0.005
     assert not (segment_planes(mixed, image, min_inliers=0.8)[0] > 0).any()
     with pytest.raises(ShapeError):
         segment_planes(depth, image[:, :10])
     with pytest.raises(ValueError, match="min_pixels"):
         segment_planes(depth, image, min_pixels=2)
+
+
+def test_segment_planes_refuse_a_large_region_with_a_few_specks():
+    """The statue's background: a large untextured region whose known pixels, all on one plane, cover
+    under SEGMENT_MIN_SUPPORT of it gives no plane, and its pixels come back ``refused``; the same
+    region with its borders known (an indoor wall) is filled as before, nothing refused."""
+    from colmap_pvs.completion import SEGMENT_MIN_SUPPORT
+
+    rng = np.random.default_rng(4)
+    depth, image = _two_walls()
+    specks = np.where(rng.random(depth.shape) < 0.03, depth, 0.0).astype(np.float32)
+    for wall in (slice(0, 63), slice(65, None)):
+        share = (specks[:, wall] > 0).mean()
+        assert 0.5 * SEGMENT_MIN_SUPPORT < share < SEGMENT_MIN_SUPPORT and (specks[:, wall] > 0).sum() > 30
+    out, _, refused = segment_planes(specks, image)
+    assert not (out > 0).any()
+    assert refused.dtype == bool and refused[specks == 0].mean() > 0.9 and not refused[specks > 0].any()
+    borders = _border_known(depth, rng)
+    out, _, refused = segment_planes(borders, image)
+    assert (out[borders == 0] > 0).mean() > 0.9 and not refused.any()
+
+
+def test_fit_support_is_the_share_of_known_pixels_around_each_pixel():
+    from colmap_pvs.completion import FIT_SUPPORT_WINDOW, fit_support
+
+    known = np.zeros((60, 200), np.float32)
+    known[:, :20] = 2.0
+    known[0, 199] = np.nan  # not finite: not known
+    support = fit_support(known)
+    win = int(FIT_SUPPORT_WINDOW * 200) | 1
+    assert support.shape == known.shape and support.dtype == np.float32
+    np.testing.assert_allclose(support[:, 20 + win // 2:], 0.0)
+    np.testing.assert_allclose(support[:, : 20 - win // 2], 1.0)
+    assert 0.0 < support[30, 20] < 1.0
+    with pytest.raises(ShapeError):
+        fit_support(np.zeros((2, 3, 4)))
 
 
 def _camera(x: float) -> np.ndarray:
@@ -371,13 +407,13 @@ def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):
     known[inside[:, 0], inside[:, 1]] = depth[inside[:, 0], inside[:, 1]]
     interior = np.zeros((H, W), bool)
     interior[40:56, 48:80] = True  # more than 15 pixels inside the box
-    out, _ = segment_planes(known, grey)
+    out, _, _ = segment_planes(known, grey)
     assert not (out[interior] > 0).any()
     given = out > 0
     assert given[~box & (known == 0)].mean() > 0.9
     assert np.abs(out[given & ~box] / depth[given & ~box] - 1).max() < 0.005
     monkeypatch.setattr(completion, "SEGMENT_LOCAL_WINDOW", 1)
-    unguarded, _ = segment_planes(known, grey)
+    unguarded, _, _ = segment_planes(known, grey)
     unknown = interior & (known == 0)
     assert (unguarded[unknown] > 0).all()
     np.testing.assert_allclose(unguarded[unknown], wall[unknown], rtol=0.005)  # the wall's plane: wrong

@@ -6,6 +6,7 @@ COLMAP's integer-centre convention), so a correct fusion puts every point on the
 
 from __future__ import annotations
 
+import json
 import shutil
 import struct
 import subprocess
@@ -245,6 +246,35 @@ def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace
         write_array(workspace / "stereo" / "confidence_maps" / f"{name}.bin", np.zeros((h, w), np.float32))
     kept = fuse(FuseConfig(workspace_path=workspace, input_type="filled", min_confidence=0.5))
     assert kept.num_points == result.num_points
+
+
+def test_fuse_defaults_to_the_completion_and_never_fuses_its_unsupported_pixels(workspace, analytic_scene):
+    """``input_type auto``: the completion where every image with geometric maps has one, never its
+    pixels of confidence 0 (nothing supported them: the network's depth); the geometric maps when an
+    image lacks one; always the geometric maps for COLMAP's fusion."""
+    names = analytic_scene["names"]
+    maps = workspace / "stereo" / "depth_maps"
+    for name in names:
+        shutil.copy(maps / f"{name}.geometric.bin", maps / f"{name}.filled.bin")
+    assert FuseConfig(workspace_path=workspace).input_type == "auto"
+    assert FuseConfig(workspace_path=workspace, method="colmap").input_type == "geometric"
+    filled = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
+    auto = fuse(FuseConfig(workspace_path=workspace))
+    saved = json.loads(auto.output_path.with_name(auto.output_path.stem + ".fuse_config.json").read_text())
+    assert auto.num_points == filled.num_points and saved["config"]["input_type"] == "filled"
+    for name in names:  # the left half unsupported
+        h, w = read_depth_map(maps / f"{name}.filled.bin").shape
+        conf = np.full((h, w), 0.6, np.float32)
+        conf[:, : w // 2] = 0.0
+        write_array(workspace / "stereo" / "confidence_maps" / f"{name}.filled.bin", conf)
+    half = fuse(FuseConfig(workspace_path=workspace))
+    assert 0.2 * filled.num_points < half.num_points < 0.8 * filled.num_points
+    cloud = read_point_cloud(half.output_path)
+    assert len(cloud.xyz) == half.num_points
+    (maps / f"{names[0]}.filled.bin").unlink()
+    geometric = fuse(FuseConfig(workspace_path=workspace, input_type="geometric"))
+    fallback = fuse(FuseConfig(workspace_path=workspace))
+    assert fallback.num_points == geometric.num_points and names[0] not in fallback.skipped
 
 
 def test_missing_maps(workspace, analytic_scene):

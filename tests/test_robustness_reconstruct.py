@@ -283,6 +283,14 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
         reconstruct(reconstruct_config(**{**flags, "num_views": 4}))
     # a calibration beside the checkpoint changes the confidence maps: stereo's record names it
     reconstruct(reconstruct_config(**flags, overwrite=True))  # a marker of this version
+    fusion = out / ".colmap_pvs" / "fusion.done"
+    payload = json.loads(fusion.read_text())
+    assert payload["settings"]["fusion_input"] == "filled"
+    del payload["settings"]["fusion_input"]  # a cloud fused before the completion was fuse's default
+    fusion.write_text(json.dumps(payload))
+    with pytest.raises(ConfigError, match=r"fusion_input None -> filled \(fusion\)"):
+        reconstruct(reconstruct_config(**flags))
+    reconstruct(reconstruct_config(**flags, overwrite=True))
     (tmp_path / "tiny.calibration.json").write_text(json.dumps(
         {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))
     with pytest.raises(ConfigError, match=r"confidence calibration \(sha256 None -> "):

@@ -11,7 +11,14 @@ import time
 
 import numpy as np
 
-from ..completion import complete_depth, completed_confidence, segment_planes, splat_depths
+from ..completion import (
+    FIT_MIN_SUPPORT,
+    complete_depth,
+    completed_confidence,
+    fit_support,
+    segment_planes,
+    splat_depths,
+)
 from ..errors import MapFormatError
 from ..io.maps import read_depth_map
 from .context import RefOutcome, StereoContext
@@ -109,24 +116,32 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     splatted = ~kept & (splat > 0)
     known = np.where(kept, ref.depth, splat).astype(np.float32)
     timings["splat"] = time.perf_counter() - t0
-    segmented, inliers = np.zeros_like(kept), None
+    segmented, refused, inliers = np.zeros_like(kept), np.zeros_like(kept), None
     if cfg.completion.segments:
         t0 = time.perf_counter()
         image = ctx.images.get(name, cfg.photometric.max_image_size, (w, h))
-        plane, inliers = segment_planes(known, image, ~kept)
+        plane, inliers, refused = segment_planes(known, image, ~kept)
         segmented = ~kept & (plane > 0)
+        refused &= ~splatted
         timings["segments"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     depth = complete_depth(known, photo)
     if cfg.completion.segments:
         depth = np.where(segmented, plane, depth).astype(np.float32)
+    # Nothing supports a depth where a segment's plane was refused or the local fit has too few known
+    # pixels around it: those pixels keep the network's depth, with confidence 0 (docs/CONVENTIONS.md).
+    fitted = ~kept & ~splatted & ~segmented
+    unsupported = refused | (fitted & (fit_support(known) < FIT_MIN_SUPPORT))
+    depth = np.where(unsupported, photo, depth).astype(np.float32)
     conf = ctx.calibration.apply("filled", completed_confidence(
         kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers), depth > 0)
+    conf = np.where(unsupported, 0.0, conf).astype(np.float32)
     timings["fit"] = time.perf_counter() - t0
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
              "geometric_fraction": float(geometric_kept.mean()),
              "splatted_fraction": float((splatted & ~segmented).mean()),
-             "segmented_fraction": float(segmented.mean())}
+             "segmented_fraction": float(segmented.mean()),
+             "unsupported_fraction": float(unsupported.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
     ctx.submit_write(write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
     return RefOutcome(name, "filled", "computed", seconds=time.perf_counter() - start, timings=timings)
