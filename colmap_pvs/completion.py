@@ -351,7 +351,9 @@ def segment_planes(
     todo = targets.copy()
     for i, level in enumerate(thresholds):
         coarsest = i == len(thresholds) - 1 and i > 0
-        plane_inv, frac, thin = _segment_planes_once(inv, todo, grey, level, min_pixels, min_inliers, coarsest)
+        plane_inv, frac, thin = _segment_planes_once(
+            inv, todo, grey, level, min_pixels, min_inliers, coarsest
+        )
         new = todo & (plane_inv > 0)
         refused |= todo & thin & ~new
         todo &= ~(new | thin)
