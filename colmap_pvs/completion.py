@@ -207,7 +207,7 @@ def _centred(rows: np.ndarray, cols: np.ndarray, H: int, W: int) -> tuple[np.nda
 def _segment_planes_once(
     inv: np.ndarray, targets: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int,
     min_inliers: float, guard: bool,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One segmentation's robust planes: ``[H, W]`` inverse depth (0 = none), inlier fraction and the
     target pixels of segments too thinly supported for a plane (``SEGMENT_MIN_SUPPORT``), for the
     segments that hold a target pixel (``grey``: the blurred uint8 image)."""
@@ -292,7 +292,7 @@ def segment_planes(
     min_pixels: int = SEGMENT_MIN_PIXELS,
     min_inliers: float = SEGMENT_MIN_INLIERS,
     thresholds: tuple[tuple[int, int], ...] = SEGMENT_EDGE_THRESHOLDS,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Depth from one robust plane per colour segment of the image (the planar prior of TAPA-MVS).
 
     An untextured wall or cupboard door is a region without image edges whose known pixels (its
@@ -304,10 +304,12 @@ def segment_planes(
     lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
     (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within :data:`SEGMENT_MAX_EXTRAPOLATION` of their
     depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit). A
-    region whose inliers cover less than :data:`SEGMENT_MIN_SUPPORT` of its area gives no plane and its
-    pixels are ``refused``: on colmap-statue the background beyond the depth range is one such region,
-    whose few chance specks drew sheets and streaks around the statue (``benchmarks/RESULTS.md``). The
-    segmentations go from fine to coarse; a pixel takes the finest region that gives it a depth.
+    region that passes those tests but whose inliers cover less than :data:`SEGMENT_MIN_SUPPORT` of its
+    area gives no plane either, and its pixels are ``refused``, also for the coarser segmentations: on
+    colmap-statue the background beyond the depth range is such a region, whose few chance specks drew
+    sheets and streaks around the statue, and a coarser region merging it with the statue would give it
+    the statue's plane (``benchmarks/RESULTS.md``). The segmentations go from fine to coarse; a pixel
+    takes the finest region that gives it a depth or refuses it.
     The coarsest one's regions (when there are at least two segmentations) can span two surfaces
     whose boundary shows only a weak edge (an occlusion edge of one colour), so there a pixel also
     needs at least as many inliers as outliers among the accepted regions' known pixels in the
@@ -325,7 +327,7 @@ def segment_planes(
     Returns:
         depth ``[H, W]`` float32 (0 where no region gives one, and off the targets), ``[H, W]``
         float32 the inlier fraction of the region that gave it (0 where none), and ``[H, W]`` bool
-        the targets whose finest fitting region was refused because its inliers cover less than
+        the targets whose finest deciding region was refused because its inliers cover less than
         :data:`SEGMENT_MIN_SUPPORT` of its area: nothing here supports a depth for them.
     """
     import cv2
@@ -355,6 +357,8 @@ def segment_planes(
             inv, todo, grey, level, min_pixels, min_inliers, coarsest
         )
         new = todo & (plane_inv > 0)
+        # A refused pixel stays refused: a coarser region that merges its thin one with a well supported
+        # surface (a statue and the background behind it) would hand it that surface's plane.
         refused |= todo & thin & ~new
         todo &= ~(new | thin)
         depth[new] = 1.0 / plane_inv[new]

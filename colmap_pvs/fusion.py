@@ -171,7 +171,8 @@ class FuseConfig:
     input_type: Literal["auto", "geometric", "photometric", "filled"] = field(
         default="auto",
         metadata={"help": "which maps to fuse (stereo/*_maps/NAME.INPUT_TYPE.bin); filled: the dense "
-                          "completion (pvs only); auto: filled for pvs, geometric for colmap"},
+                          "completion (pvs only); auto: filled for pvs where every image has a current "
+                          "one, else geometric"},
     )
     num_sources: int = field(
         default=8, metadata={"help": "pvs: source views checked per reference (best first)"}
@@ -475,13 +476,15 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         conf_path = ws.confidence_map_path(name, config.input_type)
         if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
             conf_path = ws.confidence_map_path(name)
-        unsupported = config.input_type == "filled"  # its confidence 0: the network's depth, unsupported
-        if (config.min_confidence > 0 or unsupported) and conf_path.is_file():
+        filled = config.input_type == "filled"  # its confidence 0 marks the unsupported pixels
+        if filled and not conf_path.is_file():
+            raise MapFormatError(f"the completion of {name!r} has no confidence map {str(conf_path)!r}")
+        if (config.min_confidence > 0 or filled) and conf_path.is_file():
             conf = read_array(conf_path)
             if conf.shape[:2] != (h, w):
                 raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
             conf = conf.reshape(h, w)
-            depth[(conf < config.min_confidence) | (unsupported & (conf <= 0))] = 0.0
+            depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
         rgb = load_image(ws.image_path(name))
         if rgb.shape[:2] != (h, w):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
@@ -618,6 +621,28 @@ def _set_aside_foreign_cloud(out: Path) -> None:
         set_aside_foreign_output(path)
 
 
+def _auto_input_type(ws: Workspace, listed: list[str]) -> str:
+    """``filled`` when every listed image with a geometric map has a completion of this version's format
+    (older ones hold no unsupported pixels), else ``geometric``."""
+    from .stereo.config import FORMAT_VERSIONS
+    from .stereo.outputs import read_provenance
+
+    geometric = [n for n in listed if ws.depth_map_path(n, "geometric").is_file()]
+    missing = [n for n in geometric if not ws.depth_map_path(n, "filled").is_file()]
+    old = [n for n in geometric if n not in missing and ((read_provenance(ws, n, "filled") or {}).get(
+        "settings") or {}).get("format_version") != FORMAT_VERSIONS["filled"]]
+    if geometric and not missing and not old:
+        logger.info("fusion: input_type auto -> filled (the dense completion)")
+        return "filled"
+    if old:
+        logger.warning("fusion: %d completion(s) (e.g. %r) are from an older colmap-pvs: fusing the "
+                       "geometric maps; rerun `colmap-pvs stereo` to update them", len(old), old[0])
+    else:
+        logger.info("fusion: input_type auto -> geometric (%d of %d images have no completion)",
+                    len(missing), len(geometric))
+    return "geometric"
+
+
 def fuse(config: FuseConfig) -> FuseResult:
     """Fuse the workspace's depth maps into ``config.output_path`` (+ ``.vis``).
 
@@ -642,11 +667,8 @@ def fuse(config: FuseConfig) -> FuseResult:
             )
     else:
         listed = all_names
-    if config.input_type == "auto":  # the completion where every image with geometric maps has one
-        geometric = [n for n in listed if ws.depth_map_path(n, "geometric").is_file()]
-        filled = bool(geometric) and all(ws.depth_map_path(n, "filled").is_file() for n in geometric)
-        config = replace(config, input_type="filled" if filled else "geometric")
-        logger.info("fusion: input_type auto -> %s", config.input_type)
+    if config.input_type == "auto":
+        config = replace(config, input_type=_auto_input_type(ws, listed))
     names = []
     for n in listed:
         have = ws.depth_map_path(n, config.input_type).is_file() and (

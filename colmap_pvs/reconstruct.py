@@ -40,7 +40,7 @@ from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256
 from .io.images import check_image_file, check_image_format
 from .io.workspace import set_aside_foreign_output
-from .stereo.config import StereoConfig, map_settings
+from .stereo.config import FORMAT_VERSIONS, StereoConfig, map_settings
 
 logger = logging.getLogger(__name__)
 
@@ -64,8 +64,8 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "mapping": (),
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
     # every stereo setting that changes the maps, and the weights by their content, wherever they are
-    "stereo": ("stereo", "checkpoint_sha256", "calibration_sha256"),
-    "fusion": ("fusion_method", "fusion_input"),
+    "stereo": ("stereo", "checkpoint_sha256", "calibration_sha256", "stereo_formats"),
+    "fusion": ("fusion_method",),
     "mesh": ("mesh", "mesh_depth"),
 }
 _IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm"}
@@ -271,9 +271,8 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
         "calibration_sha256": _calibration_sha256(checkpoint),
         **{k: v for k, v in config_to_dict(config).items() if k not in ("input_path", "stereo")},
         "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
-        # the maps `fuse` reads (its input_type auto): the completion, unless COLMAP fuses or it is off
-        "fusion_input": "filled" if config.fusion_method == "pvs" and config.stereo.completion.enabled
-        else "geometric",
+        # the maps' formats: a new colmap-pvs may write some pass differently (the stereo step resumes)
+        "stereo_formats": dict(FORMAT_VERSIONS),
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 
@@ -294,6 +293,7 @@ def _describe_change(key: str, old, new) -> str:
 def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) -> None:
     """Refuse (or, with ``overwrite``, schedule the recomputation of) stages made with other settings."""
     changes: list[tuple[str, str]] = []  # (stage, description)
+    formats_changed = False
     for stage in STAGES:
         recorded = prog.recorded(stage)
         if recorded is None:
@@ -305,8 +305,12 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
             old = recorded.get(key)
             if key == "stereo" and isinstance(old, dict):  # a setting it did not record: not changed
                 differs = any(k in old and old[k] != v for k, v in new.items())
-            elif key in ("calibration_sha256", "fusion_input"):  # recorded since: before, none
+            elif key == "calibration_sha256":  # recorded since the confidence is calibrated; before: none
                 differs = old != new
+            elif key == "stereo_formats":  # not a setting: stereo resumes (redoing what changed)
+                if old != new:
+                    formats_changed = True
+                continue
             else:
                 differs = key in recorded and old != new
             if differs:
@@ -324,6 +328,11 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
     elif config.overwrite:
         redo = STAGES[3:] if config.input_path is not None else STAGES
         logger.info("reconstruct: --overwrite: recomputing %s", ", ".join(redo))
+    elif formats_changed:
+        logger.info("reconstruct: the depth maps are from an older colmap-pvs: resuming stereo (it "
+                    "recomputes the passes whose format changed), then fusion and mesh")
+        prog.unmark("stereo", "fusion", "mesh")
+        return
     else:
         return
     prog.overwrite = set(redo)

@@ -248,6 +248,31 @@ def test_segment_planes_refuse_a_large_region_with_a_few_specks():
     assert (out[borders == 0] > 0).mean() > 0.9 and not refused.any()
 
 
+def test_a_refused_region_stays_refused_when_a_coarser_one_merges_it_with_a_supported_surface():
+    """colmap-statue's background: a fully known object (a box) before a background whose few known
+    specks lie in one corner (under SEGMENT_MIN_SUPPORT of it), split from the box by an edge only the
+    finer segmentations see. The fine background region is refused; the coarse region that merges it
+    with the box would give the background the box's plane, which is wrong by 25 %, unless the
+    refusal carries over."""
+    from colmap_pvs.completion import SEGMENT_EDGE_THRESHOLDS
+
+    H, W = 96, 128
+    ys, xs = np.mgrid[0:H, 0:W]
+    box = (ys >= 24) & (ys < 72) & (xs >= 32) & (xs < 96)
+    depth = np.where(box, 4.0, 5.0).astype(np.float32)  # both fronto-parallel
+    grey = np.where(box, 0.5 + 60 / 255, 0.5).astype(np.float32)  # 60 grey levels: not a coarse edge
+    corner = ~box & (ys >= H - 12) & (xs >= W - 12)
+    known = np.where(box | (corner & ((ys + xs) % 2 == 0)), depth, 0.0).astype(np.float32)
+    near_box = (ys >= 21) & (ys < 75) & (xs >= 29) & (xs < 99)  # the box's dilated edge: no region's
+    background = ~near_box & ~corner
+    out, _, refused = segment_planes(known, grey)
+    assert refused[background].all() and not (out[background] > 0).any()
+    # the coarse segmentation alone merges them: the box's plane for the background, 25 % off
+    merged, _, merged_refused = segment_planes(known, grey, thresholds=SEGMENT_EDGE_THRESHOLDS[2:])
+    assert (merged[background] > 0).mean() > 0.5 and not merged_refused.any()
+    np.testing.assert_allclose(merged[background & (merged > 0)], 4.0, rtol=1e-3)
+
+
 def test_fit_support_is_the_share_of_known_pixels_around_each_pixel():
     from colmap_pvs.completion import FIT_SUPPORT_WINDOW, fit_support
 

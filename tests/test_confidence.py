@@ -179,10 +179,12 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
             assert valid.mean() > 0.05
             np.testing.assert_allclose(c[valid], cal.curves[kind](c_raw[valid]), atol=1e-6)
             assert np.all(c[~valid] == 0)
-    for d, c in maps("filled").values():
+    photometric = maps("photometric")
+    for n, (d, c) in maps("filled").items():
         assert (d > 0).all()  # a depth everywhere, each supported one through the filled curve
         supported = c > 0  # the others: the network's depth, confidence exactly 0
-        assert supported.any()  # (this untrained network leaves most of them unsupported)
+        assert supported.any() and (~supported).any()  # (this untrained network leaves most unsupported)
+        np.testing.assert_array_equal(d[~supported], photometric[n][0][~supported])
         assert np.all((c[supported] >= 0.05) & (c[supported] <= 0.15)) and c.max() > c[supported].min()
     prov = json.loads((ws / "stereo" / "provenance" / f"{names[0]}.geometric.json").read_text())
     assert prov["settings"]["confidence_calibration"]["prob"] == [0.2, 0.8, 0.9]

@@ -26,6 +26,7 @@ from colmap_pvs.io.ply import (
     write_point_cloud,
     write_visibility,
 )
+from colmap_pvs.stereo.config import FORMAT_VERSIONS
 
 
 @pytest.fixture()
@@ -223,6 +224,14 @@ def test_confidence_maps_filter_pixels(workspace, analytic_scene):
     assert fuse(FuseConfig(workspace_path=workspace, min_confidence=0.5)).num_points == 0
 
 
+def _supported_everywhere(workspace: Path, names: list[str]) -> None:
+    """A filled confidence of 0.6 for every pixel of each image's filled depth map."""
+    for name in names:
+        h, w = read_depth_map(workspace / "stereo" / "depth_maps" / f"{name}.filled.bin").shape
+        write_array(workspace / "stereo" / "confidence_maps" / f"{name}.filled.bin",
+                    np.full((h, w), 0.6, np.float32))
+
+
 def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace, analytic_scene):
     """``input_type filled``: the dense completion's depth (no normal map) with normals fitted to it
     fuses like the geometric maps; COLMAP's fusion cannot read it."""
@@ -232,6 +241,10 @@ def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace
         (maps / f"{name}.geometric.bin").rename(maps / f"{name}.filled.bin")
     with pytest.raises(WorkspaceError, match="no geometric depth"):
         fuse(FuseConfig(workspace_path=workspace))
+    # a completion needs its confidence (0 marks the unsupported pixels): without it, no image
+    none = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
+    assert none.num_points == 0 and all("no confidence map" in none.skipped[n] for n in gt["names"])
+    _supported_everywhere(workspace, gt["names"])
     result = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
     assert result.num_images == 5 and result.num_points > 5000
     cloud = read_point_cloud(result.output_path)
@@ -256,6 +269,16 @@ def test_fuse_defaults_to_the_completion_and_never_fuses_its_unsupported_pixels(
     maps = workspace / "stereo" / "depth_maps"
     for name in names:
         shutil.copy(maps / f"{name}.geometric.bin", maps / f"{name}.filled.bin")
+    _supported_everywhere(workspace, names)
+    provenance = workspace / "stereo" / "provenance"
+    provenance.mkdir(exist_ok=True)
+    for version in (FORMAT_VERSIONS["filled"] - 1, FORMAT_VERSIONS["filled"]):
+        for name in names:  # the completion's format version: older ones hold no unsupported pixels
+            record = {"settings": {"format_version": version}}
+            (provenance / f"{name}.filled.json").write_text(json.dumps(record))
+        if version < FORMAT_VERSIONS["filled"]:
+            assert fuse(FuseConfig(workspace_path=workspace)).num_points == fuse(
+                FuseConfig(workspace_path=workspace, input_type="geometric")).num_points
     assert FuseConfig(workspace_path=workspace).input_type == "auto"
     assert FuseConfig(workspace_path=workspace, method="colmap").input_type == "geometric"
     filled = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))

@@ -11,7 +11,7 @@ from scenes import render_view
 from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import replace_config
-from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.errors import ConfigError, MapFormatError, WorkspaceError
 from colmap_pvs.train import TrainConfig, Trainer
 from colmap_pvs.train.real_dataset import (
     REAL_SAMPLE_KEYS,
@@ -160,6 +160,30 @@ def test_teacher_labels_are_read_like_the_other_pseudo_labels(analytic_scene, tm
     labelled = {f.name.replace(".geometric.bin", "") for f in geometric[1:]}
     assert set(ds.scenes[0].pseudo) == labelled & set(ds.scenes[0].references)
     assert all(p.name.endswith(".teacher.bin") for p in ds.scenes[0].pseudo.values())
+
+
+def test_a_completions_unsupported_pixels_are_no_pseudo_labels(tmp_path):
+    """``pseudo_labels="filled"``: a pixel of confidence 0 holds the network's own depth, so no label."""
+    from colmap_pvs.io.maps import write_array, write_depth_map
+    from colmap_pvs.train.real_dataset import read_pseudo_label
+
+    maps = tmp_path / "stereo" / "depth_maps"
+    confs = tmp_path / "stereo" / "confidence_maps"
+    maps.mkdir(parents=True)
+    confs.mkdir()
+    depth = np.full((6, 8), 2.0, np.float32)
+    conf = np.full((6, 8), 0.7, np.float32)
+    conf[:, :3] = 0.0
+    write_depth_map(maps / "a.png.filled.bin", depth)
+    write_array(confs / "a.png.filled.bin", conf)
+    label = read_pseudo_label(maps / "a.png.filled.bin", "filled")
+    assert np.all(label[:, :3] == 0) and np.all(label[:, 3:] == 2.0)
+    write_depth_map(maps / "a.png.geometric.bin", depth)
+    write_array(confs / "a.png.geometric.bin", conf)
+    assert np.all(read_pseudo_label(maps / "a.png.geometric.bin", "geometric") == 2.0)  # its own meaning
+    write_array(confs / "a.png.filled.bin", conf[:, :4])
+    with pytest.raises(MapFormatError, match="a.png.filled.bin"):
+        read_pseudo_label(maps / "a.png.filled.bin", "filled")
 
 
 def test_mixed_dataset_ratio_and_keys(analytic_scene, tmp_path):

@@ -18,6 +18,7 @@ from colmap_pvs.cli.main import main
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.reconstruct import reconstruct
+from colmap_pvs.stereo.config import FORMAT_VERSIONS
 
 GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d", re.MULTILINE)
 
@@ -278,19 +279,30 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
     payload["settings"] = {"max_image_size": 64, "num_views": 3, "network_scale": 0.8,
                            "checkpoint_sha256": payload["settings"]["checkpoint_sha256"]}
     marker.write_text(json.dumps(payload))
-    assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed  # the same settings
+    with pytest.raises(ConfigError, match=r"--num_views 3 -> 4"):
+        reconstruct(reconstruct_config(**{**flags, "num_views": 4}))
+    # the same settings: not refused; an older marker records no map formats, so stereo resumes
+    again = reconstruct(reconstruct_config(**flags))
+    assert "undistort" in again.resumed and "stereo" not in again.resumed
+    assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed  # now recorded
     with pytest.raises(ConfigError, match=r"--num_views 3 -> 4"):
         reconstruct(reconstruct_config(**{**flags, "num_views": 4}))
     # a calibration beside the checkpoint changes the confidence maps: stereo's record names it
     reconstruct(reconstruct_config(**flags, overwrite=True))  # a marker of this version
-    fusion = out / ".colmap_pvs" / "fusion.done"
-    payload = json.loads(fusion.read_text())
-    assert payload["settings"]["fusion_input"] == "filled"
-    del payload["settings"]["fusion_input"]  # a cloud fused before the completion was fuse's default
-    fusion.write_text(json.dumps(payload))
-    with pytest.raises(ConfigError, match=r"fusion_input None -> filled \(fusion\)"):
-        reconstruct(reconstruct_config(**flags))
-    reconstruct(reconstruct_config(**flags, overwrite=True))
+    # maps of an older colmap-pvs (another format of a pass, or none recorded): stereo resumes, redoing
+    # what changed, then fusion and mesh; nothing is refused
+    stereo = out / ".colmap_pvs" / "stereo.done"
+    for formats in ({**FORMAT_VERSIONS, "filled": FORMAT_VERSIONS["filled"] - 1}, None):
+        payload = json.loads(stereo.read_text())
+        assert payload["settings"]["stereo_formats"] == FORMAT_VERSIONS
+        if formats is None:
+            del payload["settings"]["stereo_formats"]
+        else:
+            payload["settings"]["stereo_formats"] = formats
+        stereo.write_text(json.dumps(payload))
+        again = reconstruct(reconstruct_config(**flags))
+        assert "undistort" in again.resumed and not {"stereo", "fusion", "mesh"} & set(again.resumed)
+    assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
     (tmp_path / "tiny.calibration.json").write_text(json.dumps(
         {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))
     with pytest.raises(ConfigError, match=r"confidence calibration \(sha256 None -> "):

@@ -24,7 +24,8 @@ never both in one sample.
 Pseudo-labels (``pseudo_labels="geometric"``, ``"filled"`` or ``"teacher"``): each root is then a
 dense workspace, and the reference's geometric map (``stereo/depth_maps/NAME.geometric.bin``,
 written by ``colmap-pvs stereo``: depths that at least ``geom_min_consistent`` sources agree
-with, 0 elsewhere), its dense completion (``NAME.filled.bin``) or its teacher labels
+with, 0 elsewhere), its dense completion (``NAME.filled.bin``, but for its unsupported pixels) or
+its teacher labels
 (``NAME.teacher.bin``, written by ``tools/teacher_labels.py``: depths where independent teacher
 networks and the multi-view check agree) is cropped with the reference's window (nearest pixel)
 into ``pseudo_depth``. A reference without such a map gets
@@ -48,10 +49,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ..errors import ConfigError, WorkspaceError
+from ..errors import ConfigError, MapFormatError, WorkspaceError
 from ..geometry import sparse_depth_map, to_homogeneous
 from ..io.images import load_image, resize_image
-from ..io.maps import read_depth_map
+from ..io.maps import read_array, read_depth_map
 from ..io.sparse import read_sparse_model
 from ..io.workspace import UndistortConfig, detect_workspace, undistort
 from ..model.config import NETWORK_STRIDE
@@ -256,6 +257,20 @@ def _find_pseudo_labels(root: Path, images_dir: Path, references: list[str], kin
     return found
 
 
+def read_pseudo_label(path: Path, kind: str) -> np.ndarray:
+    """``[H, W]`` depth of a pseudo-label map; of a completion only its supported pixels: those of
+    confidence 0 hold the network's own depth (``docs/CONVENTIONS.md``), which teaches it nothing."""
+    depth = read_depth_map(path)
+    conf_path = path.parent.parent / "confidence_maps" / path.name
+    if kind == "filled" and conf_path.is_file():
+        conf = read_array(conf_path)
+        if conf.shape[:2] != depth.shape:
+            h, w = depth.shape
+            raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
+        depth = np.where(conf.reshape(depth.shape) > 0, depth, 0.0).astype(np.float32)
+    return depth
+
+
 def crop_label_map(
     label: np.ndarray, image_size: tuple[int, int], window, out_w: int, out_h: int
 ) -> np.ndarray:
@@ -409,7 +424,7 @@ class RealMVSDataset(Dataset):
         labels[hints > 0] = 0.0  # a pixel holding a hint never also holds a label
         pseudo = np.zeros((c.height, c.width), np.float32)
         if ref_name in scene.pseudo:
-            pseudo = crop_label_map(read_depth_map(scene.pseudo[ref_name]), (w0, h0),
+            pseudo = crop_label_map(read_pseudo_label(scene.pseudo[ref_name], c.pseudo_labels), (w0, h0),
                                     ref_window, c.width, c.height)
         f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
         return {
