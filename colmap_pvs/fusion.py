@@ -85,25 +85,10 @@ __all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "parse_colmap_
 DEFAULT_OUTPUT_NAME = "fused.ply"
 CONFIG_SUFFIX = ".fuse_config.json"
 
-#: Our defaults for ``method="colmap"`` (every other option keeps COLMAP's value). Learned maps are
-#: dense but noisier per pixel than patch-match's filtered maps, and their normals (from depth
-#: gradients) are noisy, so COLMAP's ``min_num_pixels=5`` / ``max_normal_error=10`` discard most of
-#: the surface. Measured on the analytic scene of ``tests/scenes.py`` (8 views 320x240): exact maps
-#: plus relative Gaussian depth noise, with outliers (depth x U(0.7, 1.3)) on a fraction of the
-#: pixels, normals recomputed from the noisy depth. Points / median distance to the true surface in %
-#: of the scene size:
-#:
-#: ============================  ===============  ===============  ===============
-#: noise / outliers              0 / 0            0.2 % / 2 %      0.5 % / 5 %
-#: ============================  ===============  ===============  ===============
-#: COLMAP (min 5, normal 10)     18349 / 0.000    6845 / 0.091     235 / 0.237
-#: min 3, normal 10              27493 / 0.000    26991 / 0.125    4084 / 0.309
-#: **min 3, normal 20 (ours)**   27451 / 0.000    43372 / 0.113    22400 / 0.326
-#: min 5, normal 30              18353 / 0.000    21383 / 0.074    13281 / 0.248
-#: ============================  ===============  ===============  ===============
-#:
-#: ``max_reproj_error`` (2 px) and ``max_depth_error`` (1 %) keep COLMAP's values (2 % changed
-#: little). For comparison our ``pvs`` fusion keeps 151819 points at 0.102 % on the middle column.
+#: Our defaults for ``method="colmap"`` (every other option keeps COLMAP's value): learned maps are
+#: dense but noisier per pixel than patch-match's, and their normals noisier, so COLMAP's own
+#: ``min_num_pixels=5`` / ``max_normal_error=10`` discard most of the surface (``benchmarks/RESULTS.md``,
+#: "pycolmap's fusion options for learned maps").
 COLMAP_DEFAULTS: dict[str, Any] = {"min_num_pixels": 3, "max_normal_error": 20.0}
 
 def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
@@ -624,23 +609,17 @@ def _set_aside_foreign_cloud(out: Path) -> None:
 def _auto_input_type(ws: Workspace, listed: list[str]) -> str:
     """``filled`` when every listed image with a geometric map has a completion of this version's format
     (older ones hold no unsupported pixels), else ``geometric``."""
-    from .stereo.config import FORMAT_VERSIONS
-    from .stereo.outputs import read_provenance
+    from .stereo.outputs import outdated_completions
 
     geometric = [n for n in listed if ws.depth_map_path(n, "geometric").is_file()]
-    missing = [n for n in geometric if not ws.depth_map_path(n, "filled").is_file()]
-    old = [n for n in geometric if n not in missing and ((read_provenance(ws, n, "filled") or {}).get(
-        "settings") or {}).get("format_version") != FORMAT_VERSIONS["filled"]]
-    if geometric and not missing and not old:
-        logger.info("fusion: input_type auto -> filled (the dense completion)")
-        return "filled"
+    missing, old = outdated_completions(ws, geometric)
     if old:
         logger.warning("fusion: %d completion(s) (e.g. %r) are from an older colmap-pvs: fusing the "
                        "geometric maps; rerun `colmap-pvs stereo` to update them", len(old), old[0])
-    else:
-        logger.info("fusion: input_type auto -> geometric (%d of %d images have no completion)",
-                    len(missing), len(geometric))
-    return "geometric"
+    chosen = "filled" if geometric and not missing and not old else "geometric"
+    logger.info("fusion: input_type auto -> %s (%d of %d images without a current completion)",
+                chosen, len(missing) + len(old), len(geometric))
+    return chosen
 
 
 def fuse(config: FuseConfig) -> FuseResult:

@@ -106,6 +106,15 @@ def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
         return None
 
 
+def outdated_completions(ws: Workspace, names: list[str]) -> tuple[list[str], list[str]]:
+    """Of ``names``, those without a filled depth map and those whose completion is of another format
+    version (``FORMAT_VERSIONS["filled"]``, read from its provenance)."""
+    missing = [n for n in names if not ws.depth_map_path(n, "filled").is_file()]
+    old = [n for n in names if n not in missing and ((read_provenance(ws, n, "filled") or {}).get(
+        "settings") or {}).get("format_version") != FORMAT_VERSIONS["filled"]]
+    return missing, old
+
+
 def is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: tuple[int, int]) -> bool:
     """The pass's depth map is readable, has the expected size and its provenance matches."""
     prov = read_provenance(ws, name, stage)
