@@ -171,14 +171,19 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
     assert sorted(res.processed) == sorted(res.geometric_processed) == sorted(res.filled_processed)
     assert sorted(res.processed) == sorted(names)
     cal = load_calibration(path)
+    filled = maps("filled")
     for kind in ("photometric", "geometric"):
         for n, (d, c) in maps(kind).items():
             d_raw, c_raw = raw[kind][n]
             np.testing.assert_array_equal(d, d_raw)  # the same pixels (no threshold set)
-            valid = d > 0
+            added = np.zeros(d.shape, bool)  # the confirmed completion: the filled maps' confidence
+            if kind == "geometric":
+                added = read_depth_map(ws / "stereo" / "confirm_maps" / f"{n}.bin") > 0
+                np.testing.assert_array_equal(c[added], filled[n][1][added])
+            valid = (d > 0) & ~added
             assert valid.mean() > 0.05
             np.testing.assert_allclose(c[valid], cal.curves[kind](c_raw[valid]), atol=1e-6)
-            assert np.all(c[~valid] == 0)
+            assert np.all(c[d <= 0] == 0)
     photometric = maps("photometric")
     for n, (d, c) in maps("filled").items():
         assert (d > 0).all()  # a depth everywhere, each supported one through the filled curve

@@ -60,7 +60,7 @@ def test_task_graph_orders_passes_by_sources():
 
     assert passes(geom_consistency=True, geom_fill=False) == ("photometric", "geometric")
     assert passes(geom_consistency=False, geom_fill=True) == ("photometric",)
-    assert passes() == ("photometric", "geometric", "filled")
+    assert passes() == ("photometric", "geometric", "filled", "confirm")
 
 
 def test_task_graph_dense_completion_waits_for_every_geometric_map():
@@ -79,6 +79,24 @@ def test_task_graph_dense_completion_waits_for_every_geometric_map():
     assert graph.pop() is None  # a's completion waits for c's geometric maps too
     graph.finish(("c", "geometric"))
     assert sorted(graph.pop() for _ in range(3)) == [(n, "filled") for n in "abc"]
+
+
+def test_task_graph_confirmation_waits_for_every_completion():
+    """The confirmation of a checks a's completion against the completions of its best views among
+    all references, so it waits for every completion."""
+    graph = TaskGraph(["a", "b", "c"], ("photometric", "geometric", "filled", "confirm"),
+                      {"a": ["b"], "b": ["a"], "c": ["b"]})
+    assert graph.remaining == 12
+    for stage in ("photometric", "geometric"):
+        assert sorted(graph.pop() for _ in range(3)) == [(n, stage) for n in "abc"]
+        for n in "abc":
+            graph.finish((n, stage))
+    assert sorted(graph.pop() for _ in range(3)) == [(n, "filled") for n in "abc"]
+    graph.finish(("a", "filled"))
+    graph.finish(("b", "filled"))
+    assert graph.pop() is None
+    graph.finish(("c", "filled"))
+    assert sorted(graph.pop() for _ in range(3)) == [(n, "confirm") for n in "abc"]
 
 
 def test_task_graph_waits_for_every_photometric_map_with_splatted_seeds():
@@ -277,7 +295,10 @@ def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene
     finally:
         _, err = driver.communicate(timeout=30)
     assert driver.returncode == -signal.SIGKILL, err.decode()[-2000:]
-    finished = {p.name: p.stat().st_mtime_ns for p in maps.glob("*.geometric.bin")}
+    # a finished geometric pass (its provenance: the confirmation may still add to its maps)
+    provenance = ws / "stereo" / "provenance"
+    finished = {p.name: p.stat().st_mtime_ns for p in provenance.glob("*.geometric.json")
+                if (maps / p.name.replace(".json", ".bin")).is_file()}
     assert finished
     saved = json.loads((ws / "stereo" / CONFIG_FILENAME).read_text())
     assert saved["config"]["backend"] == "ray" and saved["checkpoint_used"] == str(scene["ckpt"])
@@ -285,7 +306,7 @@ def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene
     assert len(result.already_done) >= len(finished) and len(result.already_done) + len(result.processed) == 8
     assert result.retried == {}
     for name, mtime in finished.items():  # kept, not recomputed
-        assert (maps / name).stat().st_mtime_ns == mtime
+        assert (provenance / name).stat().st_mtime_ns == mtime
     _assert_same_maps(ws, scene["local"])
 
 

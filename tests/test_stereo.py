@@ -273,12 +273,14 @@ def test_passes_resume_independently_and_recompute_what_a_setting_affects(synthe
     names = sorted(first.processed)
     assert sorted(first.geometric_processed) == names and len(names) == 4
     assert set(first.timings) >= {"load", "prior", "network", "normals", "writes", "geometric.consistency"}
-    assert set(first.pass_seconds) == {"photometric", "geometric", "filled", "total"}
+    assert set(first.pass_seconds) == {"photometric", "geometric", "filled", "confirm", "total"}
     assert sorted(first.filled_processed) == names and "filled.splat" in first.timings
+    assert sorted(first.confirm_processed) == names
     assert "filled.segments" in first.timings
     # A setting of the dense completion: only that pass is recomputed.
     res = run_stereo(replace_config(cfg, geom_fill_min_sources=1))
     assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
+    assert sorted(res.confirm_processed) == names  # it reads the completions
     res = run_stereo(replace_config(cfg, geom_fill_min_sources=1, geom_fill_segments=False))
     assert res.processed == [] and res.geometric_processed == [] and sorted(res.filled_processed) == names
     assert "filled.segments" not in res.timings
@@ -462,6 +464,14 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
 
 
+def _pure_geometric(ws: Path, name: str) -> np.ndarray:
+    """The geometric pass's own depth of ``name``: its geometric map without the completed pixels the
+    confirmation added (``stereo/confirm_maps``)."""
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin")
+    added = ws / "stereo" / "confirm_maps" / f"{name}.bin"
+    return np.where(read_depth_map(added) > 0, 0.0, geo).astype(np.float32) if added.is_file() else geo
+
+
 def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
     """A copy of the analytic scene after a photometric-only run, its photometric maps replaced by the
     exact ones, but a block of the first view's depth ``factor`` times too far. Returns the workspace,
@@ -500,7 +510,7 @@ def test_completion_keeps_only_strictly_agreeing_pixels_and_fills_the_rest(analy
                                   geom_splat_min_sources=0)  # the kept pixels: the checked ones only
     run_stereo(geo_cfg)
     maps = ws / "stereo" / "depth_maps"
-    geo = read_depth_map(maps / f"{ref}.geometric.bin")
+    geo = _pure_geometric(ws, ref)
     block = np.zeros_like(geo, bool)
     block[40:70, 60:100] = True
     assert (geo[block] > 0).mean() > 0.3  # much of the block is kept by the geometric check ...
@@ -575,7 +585,41 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     assert res.processed == [] and ref in res.geometric_done
     res = run_stereo(replace_config(re_cfg, geom_reestimate=False))
     assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
-    assert (read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")[block] > 0).mean() < 0.02
+    assert (_pure_geometric(ws, ref)[block] > 0).mean() < 0.02
+
+
+def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes_it_back(
+        analytic_scene, tmp_path, tiny_checkpoint):
+    """A block of the reference 10 % too far fails the geometric check; the completion fills it from the
+    sources' exact maps and the other references' completions agree, so those pixels join the geometric
+    maps (which COLMAP's fusion reads), recorded in ``confirm_maps``; a rerun keeps them, and without
+    the completion the geometric maps are the geometric pass's own again."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    names = analytic_scene["names"]
+    ref = names[0]
+    block = np.zeros((120, 160), bool)
+    block[40:70, 60:100] = True
+    cfg = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0)  # no sources' seeds in it
+    res = run_stereo(cfg)
+    assert sorted(res.confirm_processed) == sorted(names)
+    maps = ws / "stereo" / "depth_maps"
+    geo, pure = read_depth_map(maps / f"{ref}.geometric.bin"), _pure_geometric(ws, ref)
+    added = read_depth_map(ws / "stereo" / "confirm_maps" / f"{ref}.bin") > 0
+    assert (pure[block] > 0).mean() < 0.02 and (added[block]).mean() > 0.5
+    assert not (added & (pure > 0)).any() and np.array_equal(geo[~added], pure[~added])
+    assert np.median(np.abs(geo[added & block] / exact[ref][added & block] - 1)) < 0.01
+    normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.geometric.bin")
+    assert np.all(np.linalg.norm(normals[added], axis=-1) > 0.99)
+    record = json.loads((ws / "stereo" / "provenance" / f"{ref}.confirm.json").read_text())
+    assert record["geometric"] == json.loads(
+        (ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())["fingerprint"]
+    mtime = (maps / f"{ref}.geometric.bin").stat().st_mtime_ns
+    again = run_stereo(cfg)
+    assert ref in again.confirm_done and (maps / f"{ref}.geometric.bin").stat().st_mtime_ns == mtime
+    run_stereo(replace_config(cfg, geom_fill=False))
+    np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), pure)
+    assert not (ws / "stereo" / "confirm_maps" / f"{ref}.bin").exists()
+    assert not (ws / "stereo" / "provenance" / f"{ref}.confirm.json").exists()
 
 
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,

@@ -52,6 +52,7 @@ from colmap_pvs.evaluate.depth import find_gt_depth, read_gt_depth
 from colmap_pvs.io.maps import read_array, read_depth_map
 from colmap_pvs.io.workspace import detect_workspace
 from colmap_pvs.stereo.config import CONFIG_FILENAME
+from colmap_pvs.stereo.confirm import confirm_map_path
 from colmap_pvs.stereo.outputs import read_provenance
 from colmap_pvs.upsampling import resize_nearest
 
@@ -108,6 +109,9 @@ def gather(ws_path: Path, kind: str, args) -> Pixels:
         g = resize_nearest(g, *d.shape) if g.shape != d.shape else g
         c = read_array(conf_path).reshape(d.shape)
         ok = (d > 0) & (g > 0) & np.isfinite(g)
+        added = confirm_map_path(ws, name)  # the confirmed completion: the filled kind's scores
+        if kind == "geometric" and added.is_file():
+            ok &= ~(read_depth_map(added) > 0)
         conf_all.append(c[ok])
         err_all.append(np.abs(d[ok] - g[ok]) / g[ok])
     try:

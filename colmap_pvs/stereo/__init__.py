@@ -20,7 +20,10 @@ A drop-in replacement for COLMAP's ``patch_match_stereo``, with COLMAP's two pas
   sources' photometric maps, too);
 - **filled** (``geom_fill``, on by default), once every geometric map exists: a dense completion
   from the seeds of the reference and of its sources (:mod:`colmap_pvs.completion`),
-  ``NAME.filled.bin`` depth and confidence maps that COLMAP's fusion never reads.
+  ``NAME.filled.bin`` depth and confidence maps that COLMAP's fusion never reads;
+- **confirm** (with ``geom_fill``), once every completion exists: the completed pixels that other
+  references' completions agree with join the geometric maps, so COLMAP's fusion gains them too
+  (:mod:`.confirm`; ``stereo/confirm_maps/NAME.bin`` records them).
 
 Every output group has a provenance file ``stereo/provenance/NAME.KIND.json`` (the resolved settings
 that affect that pass, the checkpoint's sha256 and, for the geometric pass, the photometric
@@ -33,7 +36,8 @@ As in COLMAP, the reference images are those listed in ``stereo/patch-match.cfg`
 (explicit source lists, ``__auto__, N`` and ``__all__`` are all understood), otherwise every
 registered image with sparse points.
 
-One module per pass: :mod:`.photometric`, :mod:`.geometric`, :mod:`.filled` (the completion); their
+One module per pass: :mod:`.photometric`, :mod:`.geometric`, :mod:`.filled` (the completion),
+:mod:`.confirm`; their
 settings in :mod:`.config` (one nested config per pass), what they share in :mod:`.context` (workspace,
 network, image cache), :mod:`.outputs` (paths, provenance, writers) and :mod:`.network`; the backends
 in :mod:`.local` and :mod:`.ray`; :func:`run_stereo` (:mod:`.run`) picks one. Python users call

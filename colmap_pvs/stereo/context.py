@@ -48,7 +48,8 @@ class StereoResult:
 
     ``processed`` / ``already_done`` are the photometric pass's, ``geometric_processed`` /
     ``geometric_done`` the geometric pass's, ``filled_processed`` / ``filled_done`` / ``filled_skipped``
-    the dense completion's (``geom_fill``); ``timings`` sums seconds per stage over the passes;
+    the dense completion's (``geom_fill``), ``confirm_*`` its confirmation's; ``timings`` sums seconds per
+    stage over the passes;
     ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
     per computed reference. ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
     lists a subset) and got photometric maps for the geometric pass.
@@ -66,6 +67,9 @@ class StereoResult:
     filled_processed: list[str] = field(default_factory=list)
     filled_done: list[str] = field(default_factory=list)
     filled_skipped: dict[str, str] = field(default_factory=dict)
+    confirm_processed: list[str] = field(default_factory=list)
+    confirm_done: list[str] = field(default_factory=list)
+    confirm_skipped: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     pass_seconds: dict[str, float] = field(default_factory=dict)
     auxiliary: list[str] = field(default_factory=list)

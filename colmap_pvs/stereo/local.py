@@ -16,6 +16,7 @@ from ..errors import ConfigError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
 from ..io.workspace import write_fusion_cfg
 from .config import CONFIG_FILENAME, Stage, StereoConfig
+from .confirm import confirm_pass
 from .context import RefOutcome, StereoContext, StereoResult, prepare_stereo
 from .filled import filled_pass
 from .geometric import geometric_pass
@@ -39,7 +40,9 @@ def process_reference(ctx: StereoContext, name: str, stage: Stage) -> RefOutcome
         return geometric_pass(ctx, name)
     if stage == "filled":
         return filled_pass(ctx, name)
-    raise ConfigError(f"stage must be 'photometric', 'geometric' or 'filled', got {stage!r}")
+    if stage == "confirm":
+        return confirm_pass(ctx, name)
+    raise ConfigError(f"stage must be 'photometric', 'geometric', 'filled' or 'confirm', got {stage!r}")
 
 
 def auxiliary_references(ctx: StereoContext) -> list[str]:
@@ -57,7 +60,8 @@ def auxiliary_references(ctx: StereoContext) -> list[str]:
 
 
 _PASS_LABELS = {"geometric": ("stereo (geometric)", "geometric pass"),
-                "filled": ("stereo (dense completion)", "dense completion")}
+                "filled": ("stereo (dense completion)", "dense completion"),
+                "confirm": ("stereo (confirmed completion)", "confirmed completion")}
 
 
 def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: StereoResult,
@@ -69,7 +73,7 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
     processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
     for name in tqdm(names, desc=desc, unit="image"):
         if name in skip:
-            if stage == "filled":  # never keep a completion of maps this run did not make
+            if stage in ("filled", "confirm"):  # never keep a completion of maps this run did not make
                 remove_filled(ctx.workspace, name)
             continue
         out = process_reference(ctx, name, stage)
@@ -135,6 +139,8 @@ def run_local(config: StereoConfig) -> StereoResult:
         if config.geometric.enabled and config.completion.enabled:
             _run_later_pass(ctx, names, "filled", result, outcomes,
                             set(result.skipped) | set(result.geometric_skipped))
+            _run_later_pass(ctx, names, "confirm", result, outcomes,
+                            set(result.skipped) | set(result.geometric_skipped) | set(result.filled_skipped))
         else:  # never keep a completion that no longer matches the maps
             for name in names:
                 remove_filled(ws, name)

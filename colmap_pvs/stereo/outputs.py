@@ -254,7 +254,11 @@ def read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int
 
 
 def remove_filled(ws: Workspace, name: str) -> None:
-    """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done)."""
+    """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done), and
+    take what its confirmation added back out of the geometric maps."""
+    from .confirm import remove_confirmed
+
+    remove_confirmed(ws, name)
     for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
                  ws.confidence_map_path(name, "filled")):
         path.unlink(missing_ok=True)

@@ -70,7 +70,7 @@ def stereo_passes(config: StereoConfig) -> tuple[str, ...]:
     then the geometric maps' dense completion (``filled``) if it asks for that too."""
     if not config.geometric.enabled:
         return ("photometric",)
-    return ("photometric", "geometric", "filled") if config.completion.enabled else (
+    return ("photometric", "geometric", "filled", "confirm") if config.completion.enabled else (
         "photometric", "geometric")
 
 
@@ -116,8 +116,9 @@ class TaskGraph:
     """Tasks ``(image, pass)`` and their order: the second pass of reference R waits for the first pass
     of R and of R's sources (``None``: for every image); a third pass (the dense completion, which
     reads the geometric maps of R's best views by score among the references) waits for the second
-    pass of every reference. ``auxiliary`` images (sources that are not references) get the first pass
-    only."""
+    pass of every reference, and a fourth (its confirmation, which reads their completions) for the
+    third pass of every reference. ``auxiliary`` images (sources that are not references) get the
+    first pass only."""
 
     def __init__(self, references: list[str], passes: tuple[str, ...], sources: dict[str, list[str] | None],
                  auxiliary: list[str] = ()):
@@ -473,6 +474,7 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
         result.auxiliary = list(plan["auxiliary"])
     if len(passes) > 2:
         lists[passes[2]] = (result.filled_processed, result.filled_done, result.filled_skipped)
+        lists[passes[3]] = (result.confirm_processed, result.confirm_done, result.confirm_skipped)
     seconds = [out.seconds for out in outcomes.values() if out.status == "computed"]
     computed = {name for (name, _stage), out in outcomes.items()
                 if out.status == "computed" and name not in aux}
