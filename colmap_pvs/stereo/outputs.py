@@ -256,8 +256,6 @@ def read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int
 def remove_filled(ws: Workspace, name: str) -> None:
     """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done), and
     take what its confirmation added back out of the geometric maps."""
-    from .confirm import remove_confirmed
-
     remove_confirmed(ws, name)
     for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
                  ws.confidence_map_path(name, "filled")):
@@ -277,3 +275,69 @@ def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, preview
     timings["writes"] = time.perf_counter() - t0
     if previews:
         write_previews(ws, name, "filled", depth, depth_range)
+
+
+# --------------------------------------------------------------------------- the confirmed completion
+
+
+def confirm_map_path(ws: Workspace, name: str) -> Path:
+    """``stereo/confirm_maps/NAME.bin``: the depth of the pixels the confirmation added to ``name``'s
+    geometric maps, 0 elsewhere."""
+    ws.depth_map_path(name, "geometric")  # validates name
+    return ws.stereo_dir / "confirm_maps" / f"{name}.bin"
+
+
+def confirm_provenance_path(ws: Workspace, name: str) -> Path:
+    ws.depth_map_path(name, "geometric")  # validates name
+    return ws.stereo_dir / "provenance" / f"{name}.confirm.json"
+
+
+def read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def write_json(path: Path, payload: dict) -> None:
+    atomic_write_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
+
+
+def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``name``'s geometric depth, normals and confidence without the pixels a confirmation added to
+    these very maps (it recorded their fingerprint); ``None`` without geometric maps."""
+    geo = read_provenance(ws, name, "geometric")
+    depth_path = ws.depth_map_path(name, "geometric")
+    if geo is None or not depth_path.is_file():
+        return None
+    depth = read_depth_map(depth_path)
+    normals = read_normal_map(ws.normal_map_path(name, "geometric"))
+    conf_path = ws.confidence_map_path(name, "geometric")
+    conf = read_array(conf_path).reshape(depth.shape) if conf_path.is_file() else np.zeros_like(depth)
+    record = read_json(confirm_provenance_path(ws, name))
+    added_path = confirm_map_path(ws, name)
+    if record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file():
+        added = read_depth_map(added_path) > 0
+        if added.shape == depth.shape:
+            depth, conf = np.where(added, 0.0, depth), np.where(added, 0.0, conf)
+            normals = np.where(added[..., None], 0.0, normals)
+    return depth.astype(np.float32), normals.astype(np.float32), conf.astype(np.float32)
+
+
+def write_geometric(ws: Workspace, name: str, depth, normals, conf) -> None:
+    write_array(ws.confidence_map_path(name, "geometric"), conf.astype(np.float32))
+    write_normal_map(ws.normal_map_path(name, "geometric"), normals.astype(np.float32))
+    write_depth_map(ws.depth_map_path(name, "geometric"), depth.astype(np.float32))
+
+
+def remove_confirmed(ws: Workspace, name: str) -> None:
+    """Take the pixels a confirmation added back out of ``name``'s geometric maps (when they are the maps
+    it added them to) and remove its record."""
+    record_path, added_path = confirm_provenance_path(ws, name), confirm_map_path(ws, name)
+    if not record_path.is_file() and not added_path.is_file():
+        return
+    pure = pure_geometric(ws, name)
+    if pure is not None and added_path.is_file():
+        write_geometric(ws, name, *pure)
+    record_path.unlink(missing_ok=True)
+    added_path.unlink(missing_ok=True)
