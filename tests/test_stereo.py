@@ -595,11 +595,13 @@ def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes
     maps (which COLMAP's fusion reads), recorded in ``confirm_maps``; a rerun keeps them, and without
     the completion the geometric maps are the geometric pass's own again."""
     ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    fresh = {k: shutil.copytree(ws, tmp_path / k) for k in ("other_fill", "no_fill")}  # before any pass
     names = analytic_scene["names"]
     ref = names[0]
     block = np.zeros((120, 160), bool)
     block[40:70, 60:100] = True
-    cfg = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0)  # no sources' seeds in it
+    cfg = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0,  # no sources' seeds in it
+                         geom_min_triangulation_angle=20)  # seeds outside the pass's own pixels
     res = run_stereo(cfg)
     assert sorted(res.confirm_processed) == sorted(names)
     maps = ws / "stereo" / "depth_maps"
@@ -616,7 +618,25 @@ def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes
     mtime = (maps / f"{ref}.geometric.bin").stat().st_mtime_ns
     again = run_stereo(cfg)
     assert ref in again.confirm_done and (maps / f"{ref}.geometric.bin").stat().st_mtime_ns == mtime
+
+    def same_maps(a: Path, b: Path, kinds=("geometric", "filled")) -> None:
+        for n in names:
+            for kind in kinds:
+                for sub in ("depth_maps", "normal_maps", "confidence_maps"):
+                    f = f"stereo/{sub}/{n}.{kind}.bin"
+                    if (a / f).is_file() or (b / f).is_file():
+                        np.testing.assert_array_equal(read_array(a / f), read_array(b / f), err_msg=f)
+
+    # Another completion: the confirmed pixels of the old one are taken out first, as in a fresh run.
+    other = replace_config(cfg, geom_fill_min_sources=1)
+    res = run_stereo(other)
+    assert res.geometric_processed == [] and sorted(res.confirm_processed) == sorted(names)
+    run_stereo(replace_config(other, workspace_path=fresh["other_fill"]))
+    same_maps(ws, fresh["other_fill"])
+    # Without the completion the geometric maps are the geometric pass's own, as in a fresh run.
     run_stereo(replace_config(cfg, geom_fill=False))
+    run_stereo(replace_config(cfg, geom_fill=False, workspace_path=fresh["no_fill"]))
+    same_maps(ws, fresh["no_fill"], ("geometric",))
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), pure)
     assert not (ws / "stereo" / "confirm_maps" / f"{ref}.bin").exists()
     assert not (ws / "stereo" / "provenance" / f"{ref}.confirm.json").exists()

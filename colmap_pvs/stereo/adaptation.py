@@ -46,9 +46,10 @@ def pseudo_label_key(config: StereoConfig, ws: Workspace) -> dict | None:
         return None
     settings = {**pass_settings(config, "photometric"), "wide_sources": 0,  # once an option
                 **pass_settings(config, "geometric")}
-    if kind == "filled":
-        settings.update(pass_settings(config, "completion"))
-    settings["format_versions"] = {k: FORMAT_VERSIONS[k] for k in ("photometric", "geometric", kind)}
+    if kind == "filled" or config.completion.enabled:  # the geometric maps hold the confirmed completion
+        settings.update(pass_settings(config, "completion"), geom_fill=config.completion.enabled)
+    kinds = ("photometric", "geometric", kind) + (("filled", "confirm") if config.completion.enabled else ())
+    settings["format_versions"] = {k: FORMAT_VERSIONS[k] for k in kinds}
     if ws.patch_match_cfg.is_file():
         settings["patch_match_cfg_sha256"] = file_sha256(ws.patch_match_cfg)
     text = json.dumps(settings, sort_keys=True, default=str).encode()

@@ -26,6 +26,7 @@ from ..io.maps import read_array, read_depth_map, write_depth_map
 from ..normals import fit_normals
 from .config import FORMAT_VERSIONS
 from .context import RefOutcome, StereoContext
+from .filled import current_geometric_provenance
 from .geometric import load_maps
 from .outputs import (
     confirm_map_path,
@@ -62,7 +63,9 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         if len(sources) >= max(1, cfg.geometric.num_sources):
             break
         prov = read_provenance(ws, s, "filled") if s in refs and s != name else None
-        if prov is not None and ws.depth_map_path(s, "filled").is_file():
+        geometric = current_geometric_provenance(ctx, s) if prov is not None else None
+        if (geometric is not None and ws.depth_map_path(s, "filled").is_file()  # made from its current maps
+                and prov.get("settings", {}).get("reference") == geometric.get("fingerprint")):
             sources[s] = prov["fingerprint"]
     settings = {"format_version": FORMAT_VERSIONS["confirm"], "min_views": CONFIRM_MIN_VIEWS,
                 "max_reproj_error": CONFIRM_MAX_REPROJ_ERROR, "max_depth_error": CONFIRM_MAX_DEPTH_ERROR,

@@ -28,6 +28,7 @@ from .outputs import (
     geometric_files_exist,
     is_current,
     photometric_settings,
+    pure_geometric,
     read_confidence,
     read_provenance,
     remove_filled,
@@ -97,7 +98,9 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     srcs = [load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
             for s in source_prov]
     h, w = ref.depth.shape
-    geometric_kept = read_depth_map(ws.depth_map_path(name, "geometric")) > 0
+    # the geometric pass's own maps: not the confirmed completion a previous run added to them
+    geometric_depth, _, geo_conf = pure_geometric(ws, name)
+    geometric_kept = geometric_depth > 0
     if geometric_kept.shape != (h, w):
         raise MapFormatError(
             f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
@@ -107,7 +110,6 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
         raise MapFormatError(
             f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
         )
-    geo_conf = read_confidence(ws, name, "geometric", (h, w))
     photo_conf = read_confidence(ws, name, "photometric", (h, w))
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()

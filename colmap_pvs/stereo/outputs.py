@@ -143,6 +143,9 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
     """
     t0 = time.perf_counter()
     _set_aside_colmaps_maps(ws, name, stage)
+    if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
+        confirm_provenance_path(ws, name).unlink(missing_ok=True)
+        confirm_map_path(ws, name).unlink(missing_ok=True)
     # The old depth goes first: new provenance beside an old depth would look done after a crash.
     ws.depth_map_path(name, stage).unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
@@ -312,8 +315,7 @@ def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np
         return None
     depth = read_depth_map(depth_path)
     normals = read_normal_map(ws.normal_map_path(name, "geometric"))
-    conf_path = ws.confidence_map_path(name, "geometric")
-    conf = read_array(conf_path).reshape(depth.shape) if conf_path.is_file() else np.zeros_like(depth)
+    conf = read_confidence(ws, name, "geometric", depth.shape)
     record = read_json(confirm_provenance_path(ws, name))
     added_path = confirm_map_path(ws, name)
     if record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file():

@@ -24,7 +24,8 @@ never both in one sample.
 Pseudo-labels (``pseudo_labels="geometric"``, ``"filled"`` or ``"teacher"``): each root is then a
 dense workspace, and the reference's geometric map (``stereo/depth_maps/NAME.geometric.bin``,
 written by ``colmap-pvs stereo``: depths that at least ``geom_min_consistent`` sources agree
-with, 0 elsewhere), its dense completion (``NAME.filled.bin``, but for its unsupported pixels) or
+with, and with ``geom_fill`` the completed pixels other views' completions confirm; 0 elsewhere),
+its dense completion (``NAME.filled.bin``, but for its unsupported pixels) or
 its teacher labels
 (``NAME.teacher.bin``, written by ``tools/teacher_labels.py``: depths where independent teacher
 networks and the multi-view check agree) is cropped with the reference's window (nearest pixel)
