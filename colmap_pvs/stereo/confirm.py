@@ -56,6 +56,8 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if geo is None or filled is None or not ws.depth_map_path(name, "filled").is_file():
         remove_confirmed(ws, name)
         return RefOutcome(name, "confirm", "skipped", "it has no completion")
+    if not ws.depth_map_path(name, "geometric").is_file():
+        return RefOutcome(name, "confirm", "skipped", "it has no geometric maps")
     entry = ctx.selection.references.get(name)
     refs = set(ctx.references)
     sources: dict[str, str] = {}

@@ -291,6 +291,8 @@ def confirm_map_path(ws: Workspace, name: str) -> Path:
 
 
 def confirm_provenance_path(ws: Workspace, name: str) -> Path:
+    """``stereo/provenance/NAME.confirm.json``: what the confirmation read, and the fingerprint and
+    depth file hash of the geometric maps it wrote."""
     ws.depth_map_path(name, "geometric")  # validates name
     return ws.stereo_dir / "provenance" / f"{name}.confirm.json"
 
