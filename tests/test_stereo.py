@@ -19,7 +19,7 @@ from colmap_pvs.config import replace_config
 from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
-from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
+from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map, write_depth_map
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
@@ -639,6 +639,15 @@ def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes
     same_maps(ws, fresh["no_fill"], ("geometric",))
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), pure)
     assert not (ws / "stereo" / "confirm_maps" / f"{ref}.bin").exists()
+    assert not (ws / "stereo" / "provenance" / f"{ref}.confirm.json").exists()
+    # A geometric depth file that another tool rewrote: the record no longer applies, nothing is taken out.
+    assert sorted(run_stereo(cfg).confirm_processed) == sorted(names)
+    outside = maps / f"{ref}.geometric.bin"
+    other = read_depth_map(outside).copy()
+    other[0, 0] += 1.0
+    write_depth_map(outside, other)
+    run_stereo(replace_config(cfg, geom_fill=False))
+    np.testing.assert_array_equal(read_depth_map(outside), other)
     assert not (ws / "stereo" / "provenance" / f"{ref}.confirm.json").exists()
 
 

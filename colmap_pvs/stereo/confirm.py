@@ -57,6 +57,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         remove_confirmed(ws, name)
         return RefOutcome(name, "confirm", "skipped", "it has no completion")
     if not ws.depth_map_path(name, "geometric").is_file():
+        remove_confirmed(ws, name)
         return RefOutcome(name, "confirm", "skipped", "it has no geometric maps")
     entry = ctx.selection.references.get(name)
     refs = set(ctx.references)
@@ -104,8 +105,9 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     # Crash-safe order: first a record that covers the old and the new pixels (on these geometric
     # maps), then the maps, then the exact record.
     old_path = confirm_map_path(ws, name)
-    old = read_depth_map(old_path) if old_path.is_file() and record is not None and record.get(
-        "geometric") == geo["fingerprint"] else np.zeros_like(depth)
+    applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
+        "geometric_depth_sha256") in (None, file_sha256(geometric_path))
+    old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
     old = old if old.shape == depth.shape else np.zeros_like(depth)
     old_path.parent.mkdir(parents=True, exist_ok=True)
     write_depth_map(old_path, np.where(added, supported, old).astype(np.float32))

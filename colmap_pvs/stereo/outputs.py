@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import config_to_dict
 from ..errors import MapFormatError
-from ..io.files import atomic_write_bytes
+from ..io.files import atomic_write_bytes, file_sha256
 from ..io.maps import (
     read_array,
     read_depth_map,
@@ -143,11 +143,11 @@ def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, set
     """
     t0 = time.perf_counter()
     _set_aside_colmaps_maps(ws, name, stage)
+    # The old depth goes first: new provenance beside an old depth would look done after a crash.
+    ws.depth_map_path(name, stage).unlink(missing_ok=True)
     if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
         confirm_provenance_path(ws, name).unlink(missing_ok=True)
         confirm_map_path(ws, name).unlink(missing_ok=True)
-    # The old depth goes first: new provenance beside an old depth would look done after a crash.
-    ws.depth_map_path(name, stage).unlink(missing_ok=True)
     write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
     if vis is not None:
         write_array(visibility_map_path(ws, name),
@@ -310,7 +310,8 @@ def write_json(path: Path, payload: dict) -> None:
 
 def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``name``'s geometric depth, normals and confidence without the pixels a confirmation added to
-    these very maps (it recorded their fingerprint); ``None`` without geometric maps."""
+    these very maps (it recorded their fingerprint and, once done, their depth file's sha256);
+    ``None`` without geometric maps."""
     geo = read_provenance(ws, name, "geometric")
     depth_path = ws.depth_map_path(name, "geometric")
     if geo is None or not depth_path.is_file():
@@ -320,7 +321,9 @@ def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np
     conf = read_confidence(ws, name, "geometric", depth.shape)
     record = read_json(confirm_provenance_path(ws, name))
     added_path = confirm_map_path(ws, name)
-    if record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file():
+    written = (record or {}).get("geometric_depth_sha256")  # absent while a confirmation is writing
+    if (record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file()
+            and (written is None or written == file_sha256(depth_path))):  # not rewritten by another tool
         added = read_depth_map(added_path) > 0
         if added.shape == depth.shape:
             depth, conf = np.where(added, 0.0, depth), np.where(added, 0.0, conf)

@@ -414,6 +414,8 @@ class _Driver:
                 i = self.passes.index(task[1])
                 prev = outcomes.get((task[0], self.passes[i - 1])) if i else None
                 if prev is not None and prev.status == "skipped":  # recorded, so later passes skip too
+                    if task[1] == "filled":  # never left for another reference's confirmation to read
+                        remove_filled(Workspace(self.wcfg.workspace_path), task[0])
                     outcomes[task] = RefOutcome(task[0], task[1], "skipped", prev.reason)
                     graph.finish(task)
                     bar.update(1)
