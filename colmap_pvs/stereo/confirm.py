@@ -20,7 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..consistency import check_consistency
+from ..consistency import SourceMaps, check_consistency
 from ..io.files import file_sha256
 from ..io.maps import read_array, read_depth_map, write_depth_map
 from ..normals import fit_normals
@@ -45,6 +45,14 @@ CONFIRM_MIN_VIEWS = 2
 #: Forward-backward reprojection error (map pixels) and relative depth error of that agreement.
 CONFIRM_MAX_REPROJ_ERROR = 1.0
 CONFIRM_MAX_DEPTH_ERROR = 0.01
+
+
+def _supported_completion(ctx: StereoContext, name: str) -> tuple[SourceMaps, np.ndarray]:
+    """``name``'s completion with its supported pixels only (confidence above 0; 0 elsewhere), and its
+    confidence ``[H, W]``."""
+    maps = load_maps(ctx, name, "filled", normals=False)
+    conf = read_array(ctx.workspace.confidence_map_path(name, "filled")).reshape(maps.depth.shape)
+    return replace(maps, depth=np.where(conf > 0, maps.depth, 0.0).astype(np.float32)), conf
 
 
 def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
@@ -81,14 +89,9 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     depth, normals, conf = pure_geometric(ws, name)
-    ref = load_maps(ctx, name, "filled", normals=False)
-    fconf = read_array(ws.confidence_map_path(name, "filled")).reshape(ref.depth.shape)
-    supported = np.where(fconf > 0, ref.depth, 0.0).astype(np.float32)
-    srcs = []
-    for s in sources:  # their supported pixels only
-        src = load_maps(ctx, s, "filled", normals=False)
-        sconf = read_array(ws.confidence_map_path(s, "filled")).reshape(src.depth.shape)
-        srcs.append(replace(src, depth=np.where(sconf > 0, src.depth, 0.0).astype(np.float32)))
+    ref, fconf = _supported_completion(ctx, name)
+    supported = ref.depth
+    srcs = [_supported_completion(ctx, s)[0] for s in sources]
     timings = {"load": time.perf_counter() - t0}
     t0 = time.perf_counter()
     candidates = np.where(depth > 0, 0.0, supported).astype(np.float32)

@@ -98,12 +98,20 @@ def photometric_settings(ctx: StereoContext, name: str, sources: list[str]) -> d
     return s
 
 
-def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
-    path = provenance_path(ws, name, stage)
+def read_json(path: Path) -> dict | None:
+    """A JSON record, or ``None`` when it is missing or unreadable."""
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
+
+
+def write_json(path: Path, payload: dict) -> None:
+    atomic_write_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
+
+
+def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
+    return read_json(provenance_path(ws, name, stage))
 
 
 def outdated_completions(ws: Workspace, names: list[str]) -> tuple[list[str], list[str]]:
@@ -128,8 +136,8 @@ def is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: t
 
 
 def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, extra: dict) -> None:
-    payload = {"fingerprint": fingerprint(settings), "settings": settings, **extra}
-    atomic_write_bytes(provenance_path(ws, name, stage), (json.dumps(payload, indent=1) + "\n").encode())
+    write_json(provenance_path(ws, name, stage), {"fingerprint": fingerprint(settings), "settings": settings,
+                                                  **extra})
 
 
 def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
@@ -295,17 +303,6 @@ def confirm_provenance_path(ws: Workspace, name: str) -> Path:
     depth file hash of the geometric maps it wrote."""
     ws.depth_map_path(name, "geometric")  # validates name
     return ws.stereo_dir / "provenance" / f"{name}.confirm.json"
-
-
-def read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
-def write_json(path: Path, payload: dict) -> None:
-    atomic_write_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
 
 
 def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
