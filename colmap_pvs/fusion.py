@@ -11,7 +11,9 @@ Two methods:
     back-projected and that point is reprojected into ``r``. Source ``s`` *agrees* with ``p``
     when the reprojection lands within ``max_reproj_error`` px of ``p`` and its depth in ``r``
     differs from ``p``'s by less than ``max_depth_error`` (relative). Pixels with at least
-    ``min_consistent_views`` agreeing sources become points: the 3D position, world normal
+    ``min_consistent_views`` agreeing sources become points (on the completion, a pixel the
+    geometric maps hold, which the geometric pass already checked against its sources, needs one
+    fewer): the 3D position, world normal
     and colour are averaged over ``X`` and the agreeing sources' back-projected pixels, and the
     visibility is ``r`` plus those sources. With ``deduplicate`` the source pixels that
     agreed are marked as used and are not fused again when that source is the reference
@@ -28,10 +30,11 @@ Two methods:
 Input (``input_type``): ``geometric`` or ``photometric`` maps (depth, normals, confidence), or for
 ``pvs`` the dense completion ``filled`` (no normal map: the normals are fitted to its depth,
 :func:`colmap_pvs.normals.fit_normals`; its pixels of confidence 0, where nothing supported a
-completed depth, are never fused). ``auto`` (the default) is ``geometric`` for ``colmap``, and for
+completed depth, are never fused; the pixels its geometric map holds count that check as one agreeing
+view). ``auto`` (the default) is ``geometric`` for ``colmap``, and for
 ``pvs`` ``filled`` where every listed image with geometric maps has a completion (else ``geometric``,
 e.g. maps from COLMAP's ``patch_match_stereo`` or a run without the completion). On indoor video
-(hololens-dev) the completion fuses to F1 69 at 5 cm against 68 from the geometric maps, and around
+(hololens-dev) the completion fuses to F1 71 at 5 cm against 68 from the geometric maps, and around
 an object (colmap-statue) it adds no background the geometric maps lack (``benchmarks/RESULTS.md``).
 
 Pixel convention: maps in ``stereo/`` hold, at pixel ``(col, row)``, the depth along COLMAP's
@@ -53,15 +56,16 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .config import parse_bool, save_config
+from .config import save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
+from .io.colmap_tools import COLMAP_DEFAULTS, parse_colmap_options
 from .io.files import make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
@@ -84,59 +88,6 @@ __all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "parse_colmap_
 
 DEFAULT_OUTPUT_NAME = "fused.ply"
 CONFIG_SUFFIX = ".fuse_config.json"
-
-#: Our defaults for ``method="colmap"`` (every other option keeps COLMAP's value): learned maps are
-#: dense but noisier per pixel than patch-match's, and their normals noisier, so COLMAP's own
-#: ``min_num_pixels=5`` / ``max_normal_error=10`` discard most of the surface (``benchmarks/RESULTS.md``,
-#: "pycolmap's fusion options for learned maps").
-COLMAP_DEFAULTS: dict[str, Any] = {"min_num_pixels": 3, "max_normal_error": 20.0}
-
-def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
-    """Parse ``key=value`` strings into typed ``pycolmap.StereoFusionOptions`` values.
-
-    ``bounding_box`` takes six numbers ``xmin,ymin,zmin,xmax,ymax,zmax`` (``,`` or space separated).
-
-    Raises:
-        ConfigError: a malformed item, an unknown key (named, with the known ones) or a value of the
-            wrong type; also when the resulting options fail COLMAP's own ``check()``.
-    """
-    from .io.colmap_tools import stereo_fusion_option_types, stereo_fusion_options_ok
-
-    types_ = stereo_fusion_option_types()
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = str(item).partition("=")
-        key, value = key.strip(), value.strip()
-        if not sep or not key:
-            raise ConfigError(f"colmap_options: expected key=value, got {item!r}")
-        if key not in types_:
-            raise ConfigError(
-                f"colmap_options: unknown StereoFusionOptions key {key!r}; known keys are {sorted(types_)}"
-            )
-        tp = types_[key]
-        try:
-            if tp is bool:
-                parsed: Any = parse_bool(value)
-            elif tp is int:
-                parsed = int(value)
-            elif tp is float:
-                parsed = float(value)
-            elif key == "bounding_box":
-                nums = [float(v) for v in value.replace(",", " ").split()]
-                if len(nums) != 6:
-                    raise ValueError("expected 6 numbers")
-                parsed = (np.array(nums[:3], dtype=np.float32), np.array(nums[3:], dtype=np.float32))
-            else:
-                parsed = value
-        except (ValueError, ConfigError) as exc:
-            raise ConfigError(
-                f"colmap_options: bad value {value!r} for {key!r} (expected {tp.__name__}): {exc}"
-            ) from None
-        out[key] = parsed
-    if not stereo_fusion_options_ok({**COLMAP_DEFAULTS, **out}):
-        raise ConfigError(f"colmap_options: COLMAP rejects the fusion options {list(items)} (see its log)")
-    return out
-
 
 @dataclass(frozen=True)
 class FuseConfig:
@@ -169,7 +120,9 @@ class FuseConfig:
         default=0.01, metadata={"help": "pvs: max relative depth difference |d_src_in_ref - d| / d"}
     )
     min_consistent_views: int = field(
-        default=2, metadata={"help": "pvs: minimum number of agreeing source views for a point"}
+        default=2,
+        metadata={"help": "pvs: minimum number of agreeing source views for a point (one fewer for "
+                          "completed pixels the geometric maps hold)"},
     )
     min_confidence: float = field(
         default=0.0,
@@ -252,6 +205,7 @@ class _View:
     K: np.ndarray
     R: np.ndarray
     t: np.ndarray
+    checked: np.ndarray | None = None  # [h, w] bool: pixels the geometric pass already kept (completion)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -417,7 +371,10 @@ def _fuse_reference(
         sum_n[idx] += _rowmul(src.normals_cam[rs, cs].astype(np.float64), A)
         sum_rgb[idx] += src.rgb[rs, cs]
         per_source.append((src_name, idx, rs * sw + cs))
-    keep = count >= config.min_consistent_views
+    need = np.full(len(d), config.min_consistent_views)
+    if ref.checked is not None:  # the geometric pass's own check counts as one agreeing view
+        need = np.maximum(need - ref.checked[rows, cols], 0)
+    keep = count >= need
     denom = (count[keep] + 1).astype(np.float64)[:, None]
     xyz = _rowmul(sum_x[keep] / denom - ref.t, ref.R)  # world
     nrm = _rowmul(sum_n[keep], ref.R)
@@ -470,10 +427,19 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
                 raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
             conf = conf.reshape(h, w)
             depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
+        checked = None
+        geometric_path = ws.depth_map_path(name, "geometric")
+        if filled and geometric_path.is_file():
+            geometric = read_depth_map(geometric_path)
+            if geometric.shape == (h, w):
+                checked = geometric > 0
+            else:
+                logger.warning("fusion: the geometric map of %r is not %dx%d: every completed pixel needs "
+                               "%d agreeing views", name, w, h, config.min_consistent_views)
         rgb = load_image(ws.image_path(name))
         if rgb.shape[:2] != (h, w):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        return _View(depth, normals.astype(np.float32), rgb, K, image.R, image.t)
+        return _View(depth, normals.astype(np.float32), rgb, K, image.R, image.t, checked)
 
     cache = _MapCache(load, config.cache_size)
     used: dict[str, np.ndarray] = {}  # packed bit masks of already-fused pixels (deduplicate)

@@ -300,6 +300,44 @@ def test_fuse_defaults_to_the_completion_and_never_fuses_its_unsupported_pixels(
     assert fallback.num_points == geometric.num_points and names[0] not in fallback.skipped
 
 
+def test_fusing_the_completion_counts_the_geometric_check_as_one_agreeing_view(workspace, analytic_scene):
+    """A completed pixel the geometric maps hold needs ``min_consistent_views - 1`` agreeing sources, one
+    only the completion gives needs them all; a checked pixel no source agrees with is still dropped."""
+    gt = analytic_scene
+    names, maps = gt["names"], workspace / "stereo" / "depth_maps"
+    for name in names:
+        shutil.copy(maps / f"{name}.geometric.bin", maps / f"{name}.filled.bin")
+    _supported_everywhere(workspace, names)
+    # 5 agreeing views: more than the 4 sources, so only the geometric maps' pixels can pass (with 4)
+    strict = FuseConfig(workspace_path=workspace, input_type="filled", min_consistent_views=5)
+    checked = fuse(strict)
+    assert checked.num_points > 2000
+    left = maps / f"{names[1]}.geometric.bin"
+    geometric = read_depth_map(left).copy()
+    h, w = geometric.shape
+    geometric[:, : w // 2] = 0.0  # the left half only completed
+    write_depth_map(left, geometric)
+    fewer = fuse(strict)
+    assert 0.2 < fewer.points_per_image[names[1]] / checked.points_per_image[names[1]] < 0.8
+    for name in names:
+        (maps / f"{name}.geometric.bin").unlink()
+    assert fuse(strict).num_points == 0
+    # a wrong block in a checked view: no source agrees, so one agreeing view still rejects it
+    for name in names:
+        shutil.copy(maps / f"{name}.filled.bin", maps / f"{name}.geometric.bin")
+    wrong = read_depth_map(maps / f"{names[2]}.filled.bin").copy()
+    wrong[30:90, 40:120] *= 1.3
+    write_depth_map(maps / f"{names[2]}.filled.bin", wrong)
+
+    def off_surface(**kwargs) -> int:
+        result = fuse(FuseConfig(workspace_path=workspace, input_type="filled", **kwargs))
+        distance = _surface_distance(gt, read_point_cloud(result.output_path).xyz)
+        return int((distance > 0.01 * gt["scene"].size).sum())
+
+    assert off_surface() < 10  # of the 60 x 80 block: at most a chance point on its rim
+    assert off_surface(min_consistent_views=1) > 1000  # the block passes with no agreeing view
+
+
 def test_missing_maps(workspace, analytic_scene):
     name = analytic_scene["names"][0]
     (workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin").unlink()

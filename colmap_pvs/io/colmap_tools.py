@@ -1,7 +1,8 @@
 """COLMAP's own dense tools through pycolmap: ``stereo_fusion`` and ``poisson_mesher``.
 
 :mod:`colmap_pvs.fusion` (``--method colmap``) and :mod:`colmap_pvs.mesh` (``--method colmap``) call
-these; the options are plain dictionaries / numbers there.
+these; the options are plain dictionaries / numbers there. ``fuse --colmap_options key=value`` strings
+are checked by :func:`parse_colmap_options` against COLMAP's own option types.
 """
 
 from __future__ import annotations
@@ -9,9 +10,15 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import numpy as np
 import pycolmap
 
+from ..config import parse_bool
+from ..errors import ConfigError
+
 __all__ = [
+    "COLMAP_DEFAULTS",
+    "parse_colmap_options",
     "poisson_meshing",
     "stereo_fusion",
     "stereo_fusion_option_types",
@@ -77,3 +84,55 @@ def poisson_meshing(
     options.point_weight = point_weight
     options.num_threads = num_threads
     pycolmap.poisson_meshing(str(input_path), str(output_path), options=options)
+
+
+#: Our defaults for ``method="colmap"`` (every other option keeps COLMAP's value): learned maps are
+#: dense but noisier per pixel than patch-match's, and their normals noisier, so COLMAP's own
+#: ``min_num_pixels=5`` / ``max_normal_error=10`` discard most of the surface (``benchmarks/RESULTS.md``,
+#: "pycolmap's fusion options for learned maps").
+COLMAP_DEFAULTS: dict[str, Any] = {"min_num_pixels": 3, "max_normal_error": 20.0}
+
+
+def parse_colmap_options(items: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    """Parse ``key=value`` strings into typed ``pycolmap.StereoFusionOptions`` values.
+
+    ``bounding_box`` takes six numbers ``xmin,ymin,zmin,xmax,ymax,zmax`` (``,`` or space separated).
+
+    Raises:
+        ConfigError: a malformed item, an unknown key (named, with the known ones) or a value of the
+            wrong type; also when the resulting options fail COLMAP's own ``check()``.
+    """
+    types_ = stereo_fusion_option_types()
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = str(item).partition("=")
+        key, value = key.strip(), value.strip()
+        if not sep or not key:
+            raise ConfigError(f"colmap_options: expected key=value, got {item!r}")
+        if key not in types_:
+            raise ConfigError(
+                f"colmap_options: unknown StereoFusionOptions key {key!r}; known keys are {sorted(types_)}"
+            )
+        tp = types_[key]
+        try:
+            if tp is bool:
+                parsed: Any = parse_bool(value)
+            elif tp is int:
+                parsed = int(value)
+            elif tp is float:
+                parsed = float(value)
+            elif key == "bounding_box":
+                nums = [float(v) for v in value.replace(",", " ").split()]
+                if len(nums) != 6:
+                    raise ValueError("expected 6 numbers")
+                parsed = (np.array(nums[:3], dtype=np.float32), np.array(nums[3:], dtype=np.float32))
+            else:
+                parsed = value
+        except (ValueError, ConfigError) as exc:
+            raise ConfigError(
+                f"colmap_options: bad value {value!r} for {key!r} (expected {tp.__name__}): {exc}"
+            ) from None
+        out[key] = parsed
+    if not stereo_fusion_options_ok({**COLMAP_DEFAULTS, **out}):
+        raise ConfigError(f"colmap_options: COLMAP rejects the fusion options {list(items)} (see its log)")
+    return out
