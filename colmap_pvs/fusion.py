@@ -427,13 +427,18 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
                 raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
             conf = conf.reshape(h, w)
             depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
-        checked = None
+        checked = None  # completed pixels that hold the depth the geometric map checked
         geometric_path = ws.depth_map_path(name, "geometric")
         if filled and geometric_path.is_file():
-            geometric = read_depth_map(geometric_path)
-            if geometric.shape == (h, w):
-                checked = geometric > 0
-            else:
+            try:
+                geometric = read_depth_map(geometric_path)
+            except MapFormatError as exc:
+                geometric = None
+                logger.warning("fusion: %s; every completed pixel of %r needs %d agreeing views", exc, name,
+                               config.min_consistent_views)
+            if geometric is not None and geometric.shape == (h, w):
+                checked = (geometric > 0) & (np.abs(depth - geometric) <= config.max_depth_error * geometric)
+            elif geometric is not None:
                 logger.warning("fusion: the geometric map of %r is not %dx%d: every completed pixel needs "
                                "%d agreeing views", name, w, h, config.min_consistent_views)
         rgb = load_image(ws.image_path(name))
