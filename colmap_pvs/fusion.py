@@ -11,9 +11,9 @@ Two methods:
     back-projected and that point is reprojected into ``r``. Source ``s`` *agrees* with ``p``
     when the reprojection lands within ``max_reproj_error`` px of ``p`` and its depth in ``r``
     differs from ``p``'s by less than ``max_depth_error`` (relative). Pixels with at least
-    ``min_consistent_views`` agreeing sources become points (on the completion, a pixel the
-    geometric maps hold, which the geometric pass already checked against its sources, needs one
-    fewer): the 3D position, world normal
+    ``min_consistent_views`` agreeing sources become points (on the completion, a pixel holding the
+    depth its geometric map holds, which the geometric pass already checked against its sources,
+    needs one fewer): the 3D position, world normal
     and colour are averaged over ``X`` and the agreeing sources' back-projected pixels, and the
     visibility is ``r`` plus those sources. With ``deduplicate`` the source pixels that
     agreed are marked as used and are not fused again when that source is the reference
@@ -30,11 +30,12 @@ Two methods:
 Input (``input_type``): ``geometric`` or ``photometric`` maps (depth, normals, confidence), or for
 ``pvs`` the dense completion ``filled`` (no normal map: the normals are fitted to its depth,
 :func:`colmap_pvs.normals.fit_normals`; its pixels of confidence 0, where nothing supported a
-completed depth, are never fused; the pixels its geometric map holds count that check as one agreeing
-view). ``auto`` (the default) is ``geometric`` for ``colmap``, and for
+completed depth, are never fused; a pixel that holds its geometric map's depth, within
+``max_depth_error``, counts that check as one agreeing view). ``auto`` (the default) is ``geometric``
+for ``colmap``, and for
 ``pvs`` ``filled`` where every listed image with geometric maps has a completion (else ``geometric``,
 e.g. maps from COLMAP's ``patch_match_stereo`` or a run without the completion). On indoor video
-(hololens-dev) the completion fuses to F1 71 at 5 cm against 68 from the geometric maps, and around
+(hololens-dev) the completion fuses to F1 70.5 at 5 cm against 68.4 from the geometric maps, and around
 an object (colmap-statue) it adds no background the geometric maps lack (``benchmarks/RESULTS.md``).
 
 Pixel convention: maps in ``stereo/`` hold, at pixel ``(col, row)``, the depth along COLMAP's
@@ -122,7 +123,7 @@ class FuseConfig:
     min_consistent_views: int = field(
         default=2,
         metadata={"help": "pvs: minimum number of agreeing source views for a point (one fewer for "
-                          "completed pixels the geometric maps hold)"},
+                          "completed pixels that hold their geometric map's checked depth)"},
     )
     min_confidence: float = field(
         default=0.0,
