@@ -340,7 +340,10 @@ def test_fusing_the_completion_counts_the_geometric_check_as_one_agreeing_view(w
     write_depth_map(maps / f"{names[2]}.geometric.bin", wrong)
     assert off_surface() < 10
     assert off_surface(min_consistent_views=1) > 1000
-
+    # a damaged geometric map costs its image the credit, not its place in the cloud
+    (maps / f"{names[0]}.geometric.bin").write_bytes(b"not a map")
+    damaged = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
+    assert names[0] not in damaged.skipped and damaged.points_per_image[names[0]] > 0
 
 def test_missing_maps(workspace, analytic_scene):
     name = analytic_scene["names"][0]
