@@ -83,6 +83,14 @@ SEGMENT_MIN_SPREAD = 2.0
 #: its pixels get no completed depth either (:func:`segment_planes`' ``refused``).
 SEGMENT_MIN_SUPPORT = 0.05
 
+#: How far past the convex hull of its inliers a segment's plane reaches: the larger of this share of
+#: the image width and ``SEGMENT_REACH`` times the radius of the largest disc inside the segment. A
+#: compact region (a wall known along one side) is reached whole; a thin strip that a neighbouring
+#: object's pixels pin at one end (fern's corridor wall between two shelf edges, drawn at the fronds'
+#: depth) only near that end.
+SEGMENT_HULL_MARGIN = 0.03
+SEGMENT_REACH = 3.0
+
 #: Window of :func:`fit_support`, as a fraction of the image width (61 pixels at 540).
 FIT_SUPPORT_WINDOW = 0.113
 
@@ -204,6 +212,38 @@ def _centred(rows: np.ndarray, cols: np.ndarray, H: int, W: int) -> tuple[np.nda
     return (cols + 0.5 - W / 2) / W, (rows + 0.5 - H / 2) / W
 
 
+def _within_reach(
+    labels: np.ndarray, boxes: np.ndarray, seg_labels: np.ndarray, in_rows: np.ndarray, in_cols: np.ndarray,
+    in_seg: np.ndarray, rows: np.ndarray, cols: np.ndarray, seg: np.ndarray,
+) -> np.ndarray:
+    """``[P]`` bool: target pixel ``(rows, cols)`` of segment ``seg`` (an index into ``seg_labels``, the
+    segments' labels in ``labels``, whose bounding boxes ``boxes`` holds as ``cv2`` component stats) lies
+    within the reach of its segment's plane (:data:`SEGMENT_HULL_MARGIN`, :data:`SEGMENT_REACH`) from the
+    convex hull of that segment's inliers ``(in_rows, in_cols)`` (segment ``in_seg``)."""
+    import cv2
+
+    W = labels.shape[1]
+    out = np.zeros(rows.size, bool)
+    t_order = np.argsort(seg, kind="stable")
+    i_order = np.argsort(in_seg, kind="stable")
+    in_rows, in_cols, in_seg = in_rows[i_order], in_cols[i_order], in_seg[i_order]
+    segs, t_start = np.unique(seg[t_order], return_index=True)
+    t_end = np.append(t_start[1:], rows.size)
+    i_start, i_end = np.searchsorted(in_seg, segs, "left"), np.searchsorted(in_seg, segs, "right")
+    for j, s in enumerate(segs):
+        t = t_order[t_start[j]:t_end[j]]
+        pr, pc = in_rows[i_start[j]:i_end[j]], in_cols[i_start[j]:i_end[j]]
+        c0, r0, bw, bh = (int(v) for v in boxes[seg_labels[s], :4])  # the segment's bounding box
+        r1, c1 = r0 + bh, c0 + bw
+        region = np.pad((labels[r0:r1, c0:c1] == seg_labels[s]).astype(np.uint8), 1)
+        radius = float(cv2.distanceTransform(region, cv2.DIST_L2, 3).max())
+        hull = np.ones((r1 - r0, c1 - c0), np.uint8)  # 0 inside the hull
+        cv2.fillConvexPoly(hull, cv2.convexHull(np.stack([pc - c0, pr - r0], 1).astype(np.int32)), 0)
+        outside = cv2.distanceTransform(hull, cv2.DIST_L2, 3)[rows[t] - r0, cols[t] - c0]
+        out[t] = outside <= max(SEGMENT_HULL_MARGIN * W, SEGMENT_REACH * radius)
+    return out
+
+
 def _segment_planes_once(
     inv: np.ndarray, targets: np.ndarray, grey: np.ndarray, thresholds: tuple[int, int], min_pixels: int,
     min_inliers: float, guard: bool,
@@ -216,7 +256,7 @@ def _segment_planes_once(
     H, W = inv.shape
     edges = cv2.Canny(grey, *thresholds)
     edges = cv2.dilate(edges, np.ones((3, 3), np.uint8))
-    count, labels = cv2.connectedComponents((edges == 0).astype(np.uint8), connectivity=4)
+    count, labels, boxes, _ = cv2.connectedComponentsWithStats((edges == 0).astype(np.uint8), connectivity=4)
     known = (inv > 0) & (labels > 0)  # label 0: the edges, which belong to no segment
     n_known = np.bincount(labels[known], minlength=count)
     wanted = np.bincount(labels[targets], minlength=count) > 0
@@ -267,6 +307,9 @@ def _segment_planes_once(
         local_in, local_out = (
             cv2.boxFilter(t, -1, win, normalize=False, borderType=cv2.BORDER_CONSTANT) for t in tally
         )
+    on_plane = inlier & good[idx]  # the accepted segments' inliers, their segment an index into segs
+    in_rows, in_cols, in_seg = krows[on_plane], kcols[on_plane], idx[on_plane]
+    seg_labels, kept_segs = segs, np.flatnonzero(good)
     segs, plane, lo, hi, fraction = segs[good], plane[good], lo[good], hi[good], fraction[good]
     lookup = np.full(count, -1)
     lookup[segs] = np.arange(segs.size)
@@ -278,6 +321,10 @@ def _segment_planes_once(
     ok = (out >= lo[k] / SEGMENT_MAX_EXTRAPOLATION) & (out <= SEGMENT_MAX_EXTRAPOLATION * hi[k])
     if guard:  # a segment spanning two surfaces must not give the majority's plane to the other
         ok &= local_in[rows, cols] >= local_out[rows, cols]
+    # Near its inliers' hull: a plane pinned at one end of a thin strip is not drawn along all of it.
+    reach = _within_reach(labels, boxes, seg_labels, in_rows, in_cols, in_seg, rows[ok], cols[ok],
+                          kept_segs[k[ok]])
+    ok[np.flatnonzero(ok)[~reach]] = False
     plane_inv, frac = none
     plane_inv[rows[ok], cols[ok]] = out[ok]
     frac[rows[ok], cols[ok]] = fraction[k[ok]]
@@ -303,7 +350,9 @@ def segment_planes(
     gives its depth to every pixel of the region where at least ``min_inliers`` of its known pixels
     lie within :data:`SEGMENT_INLIER_RESIDUAL` of the plane, the inliers are spread across both axes
     (:data:`SEGMENT_MIN_SPREAD`) and the plane stays within :data:`SEGMENT_MAX_EXTRAPOLATION` of their
-    depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit). A
+    depths (a plane is not drawn far beyond its support; past it the pixel is left to the fit), and
+    the pixel lies within reach of the convex hull of the inliers (:data:`SEGMENT_HULL_MARGIN`,
+    :data:`SEGMENT_REACH`: a thin strip pinned at one end takes its plane only near that end). A
     region that passes those tests but whose inliers cover less than :data:`SEGMENT_MIN_SUPPORT` of its
     area gives no plane either, and its pixels are ``refused``, also for the coarser segmentations: on
     colmap-statue the background beyond the depth range is such a region, whose few chance specks drew

@@ -199,6 +199,37 @@ def test_segment_planes_are_not_extrapolated_far_beyond_their_support():
         monkey.undo()
 
 
+def test_segment_planes_reach_along_a_thin_strip_only_near_its_inliers():
+    """fern's bar: a thin strip between two edges (a wall between shelf edges) known only at its left end,
+    where another object's depth pins its plane, gives that plane only within SEGMENT_REACH radii of the
+    inliers' hull, not along the whole strip; a compact region known along one side (a wall) takes its
+    plane everywhere, as does the strip when the reach is lifted."""
+    from colmap_pvs.completion import SEGMENT_HULL_MARGIN, SEGMENT_REACH
+
+    H, W = 96, 160
+    grey = np.full((H, W), 0.5, np.float32)
+    grey[37:40], grey[53:56] = 0.1, 0.1  # the strip: rows 40-52, the whole width
+    grey[60:, 100:] = 0.8  # a compact region below it: rows 60-95, columns 100-159
+    depth = np.full((H, W), 6.0, np.float32)
+    known = np.zeros((H, W), np.float32)
+    known[40:53, :20] = 2.0  # the strip's left end: the near object's depth
+    known[62:, 102:110] = 6.0  # the compact region's left side
+    out, _, _ = segment_planes(known, grey)
+    strip = (out[40:53] > 0).any(axis=0)
+    assert strip[20:26].all() and np.allclose(out[44:49, 20:26], 2.0, rtol=1e-3)  # next to the inliers
+    reach = max(SEGMENT_HULL_MARGIN * W, SEGMENT_REACH * 8.0)  # the strip's largest disc: radius <= 8
+    assert not strip[int(20 + reach) + 2:].any()  # not at the fronds' depth along the rest of the wall
+    region = np.zeros((H, W), bool)
+    region[64:-3, 112:-3] = True
+    assert (out[region] > 0).all() and np.allclose(out[region], depth[region], rtol=1e-3)
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr("colmap_pvs.completion.SEGMENT_REACH", 100.0)
+    try:
+        assert (segment_planes(known, grey)[0][44:49, 20:150] > 0).all()
+    finally:
+        monkey.undo()
+
+
 def test_segment_planes_refuse_segments_that_do_not_pin_a_plane():
     """No depth where a segment's known pixels are too few, lie on one line, or are half on one
     plane and half on another (under ``min_inliers``)."""
