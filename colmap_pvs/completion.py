@@ -87,7 +87,10 @@ SEGMENT_MIN_SUPPORT = 0.05
 #: the image width and ``SEGMENT_REACH`` times the radius of the largest disc inside the segment. A
 #: compact region (a wall known along one side) is reached whole; a thin strip that a neighbouring
 #: object's pixels pin at one end (fern's corridor wall between two shelf edges, drawn at the fronds'
-#: depth) only near that end.
+#: depth) only near that end. The radius is the segment's largest (a strip joined to a wide region
+#: reaches as far as that region); distances are OpenCV's 3x3-mask approximations, and the image
+#: border counts as the segment's edge. A pixel out of reach is left to the coarser segmentations and
+#: the local fit.
 SEGMENT_HULL_MARGIN = 0.03
 SEGMENT_REACH = 3.0
 

@@ -217,7 +217,7 @@ def test_segment_planes_reach_along_a_thin_strip_only_near_its_inliers():
     out, _, _ = segment_planes(known, grey)
     strip = (out[40:53] > 0).any(axis=0)
     assert strip[20:26].all() and np.allclose(out[44:49, 20:26], 2.0, rtol=1e-3)  # next to the inliers
-    reach = max(SEGMENT_HULL_MARGIN * W, SEGMENT_REACH * 8.0)  # the strip's largest disc: radius <= 8
+    reach = max(SEGMENT_HULL_MARGIN * W, SEGMENT_REACH * 6.5)  # the strip's largest disc: radius < 6.5
     assert not strip[int(20 + reach) + 2:].any()  # not at the fronds' depth along the rest of the wall
     region = np.zeros((H, W), bool)
     region[64:-3, 112:-3] = True
