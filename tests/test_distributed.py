@@ -388,9 +388,17 @@ def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path, expected_worker_d
     The tiny network's tasks are short, so the killer thread can miss every one of them; such a run
     then simply finishes. It is repeated on a fresh copy (at most 3 tries) until a worker was killed.
     """
-    # no retries allowed: the first worker lost stops the run, naming its reference
-    ws, killed, _, error = _run_killing_a_worker(scene, tmp_path, None, ray_max_retries=0, ray_workers=1)
-    assert error is not None, "a worker was killed mid-task, but the run did not fail"
+    error = None
+    # no retries allowed: the first worker lost stops the run, naming its reference. The kill can land
+    # just after the worker's last task returned (its title still says ``process``); that run rightly
+    # finishes, so up to 3 runs with a kill are made.
+    for attempt in range(3):
+        (tmp_path / f"run{attempt}").mkdir()
+        ws, killed, _, error = _run_killing_a_worker(scene, tmp_path / f"run{attempt}", None,
+                                                     ray_max_retries=0, ray_workers=1)
+        if error is not None:
+            break
+    assert error is not None, "a worker was killed mid-task in 3 runs, but no run failed"
     assert re.search(r"view_\d+.png' \((photometric|geometric) pass\): its Ray worker died 1 time\(s\) "
                      r"\(last: ActorDiedError; ray_max_retries=0\)", str(error)), str(error)
     assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
