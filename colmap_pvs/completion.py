@@ -238,12 +238,14 @@ def _within_reach(
         pr, pc = in_rows[i_start[j]:i_end[j]], in_cols[i_start[j]:i_end[j]]
         c0, r0, bw, bh = (int(v) for v in boxes[seg_labels[s], :4])  # the segment's bounding box
         r1, c1 = r0 + bh, c0 + bw
-        region = np.pad((labels[r0:r1, c0:c1] == seg_labels[s]).astype(np.uint8), 1)
-        radius = float(cv2.distanceTransform(region, cv2.DIST_L2, 3).max())
         hull = np.ones((r1 - r0, c1 - c0), np.uint8)  # 0 inside the hull
         cv2.fillConvexPoly(hull, cv2.convexHull(np.stack([pc - c0, pr - r0], 1).astype(np.int32)), 0)
         outside = cv2.distanceTransform(hull, cv2.DIST_L2, 3)[rows[t] - r0, cols[t] - c0]
-        out[t] = outside <= max(SEGMENT_HULL_MARGIN * W, SEGMENT_REACH * radius)
+        reach = SEGMENT_HULL_MARGIN * W
+        if (outside > reach).any():  # the region's largest disc only where the margin is not enough
+            region = np.pad((labels[r0:r1, c0:c1] == seg_labels[s]).astype(np.uint8), 1)
+            reach = max(reach, SEGMENT_REACH * float(cv2.distanceTransform(region, cv2.DIST_L2, 3).max()))
+        out[t] = outside <= reach
     return out
 
 
@@ -292,7 +294,7 @@ def _segment_planes_once(
     z_in = np.where(inlier, z, np.nan)
     lo, hi = np.fmin.reduceat(z_in, starts), np.fmax.reduceat(z_in, starts)
     fraction = m[:, 0] / sizes
-    area = np.bincount(labels.ravel(), minlength=count)[segs]
+    area = boxes[segs, cv2.CC_STAT_AREA]
     thin = m[:, 0] < SEGMENT_MIN_SUPPORT * area  # a few specks in a large region pin no plane
     good = (fraction >= min_inliers) & (weakest * W * W >= SEGMENT_MIN_SPREAD**2)
     refused = np.zeros((H, W), bool)

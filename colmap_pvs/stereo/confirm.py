@@ -83,9 +83,10 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
                 "geometric": geo["fingerprint"], "filled": filled["fingerprint"], "sources": sources}
     record = read_json(confirm_provenance_path(ws, name))
     geometric_path = ws.depth_map_path(name, "geometric")
+    geometric_sha256 = file_sha256(geometric_path)
     if (not cfg.overwrite and record is not None and record.get("fingerprint") == fingerprint(settings)
-            and confirm_map_path(ws, name).is_file() and geometric_path.is_file()
-            and record.get("geometric_depth_sha256") == file_sha256(geometric_path)):  # not rewritten since
+            and confirm_map_path(ws, name).is_file()
+            and record.get("geometric_depth_sha256") == geometric_sha256):  # not rewritten since
         return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
     depth, normals, conf = pure_geometric(ws, name)
@@ -109,7 +110,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     # maps), then the maps, then the exact record.
     old_path = confirm_map_path(ws, name)
     applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
-        "geometric_depth_sha256") in (None, file_sha256(geometric_path))
+        "geometric_depth_sha256") in (None, geometric_sha256)
     old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
     old = old if old.shape == depth.shape else np.zeros_like(depth)
     old_path.parent.mkdir(parents=True, exist_ok=True)
