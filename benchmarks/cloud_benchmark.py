@@ -10,8 +10,9 @@ model, references and sources; a ``hololens_quick.py --stride 3 --tag TAG`` work
     python benchmarks/cloud_benchmark.py --tag cloud --resume --picture benchmarks/cloud_benchmark.jpg
     python benchmarks/cloud_benchmark.py --tag T --resume --stereo geom_fill_segments=false
 
-1. The GT cloud: every valid GT depth pixel of the references back-projected with the model's cameras
-   (the known poses, metres), voxel-downsampled (``--gt_voxel``, 1 cm: one point per voxel, the centroid).
+1. The GT cloud: every valid GT depth pixel of the references back-projected with the data's ``K.txt``
+   and the model's poses (the known poses, metres), voxel-downsampled (``--gt_voxel``, 1 cm: one point
+   per voxel, the centroid).
 2. The clouds scored: ``pvs`` (``colmap_pvs.fusion.fuse`` with its defaults: what ``colmap-pvs fuse``
    writes), ``colmap`` (Debian COLMAP's ``colmap stereo_fusion --input_type geometric`` with its
    defaults; multi-threaded, so its point count varies by a few hundred points from run to run),
@@ -160,14 +161,18 @@ def frustum_cloud_score(
 
 
 def gt_views(model, refs: list[str], gt_dir: Path) -> list[GTView]:
-    """The references' GT depth (uint16 mm) with the model's cameras, on the GT's own grid."""
+    """The references' GT depth (uint16 mm) on the GT's own grid, with the dataset's own calibration
+    (``K.txt`` beside ``gt_dir``, for the images' size) and the model's poses (the known ones): not the
+    model's cameras, whose focal lengths ``import-poses`` refines, so that the GT cloud does not move
+    with our calibration."""
+    K_data = np.loadtxt(gt_dir.parent / "K.txt").reshape(3, 3)
     out = []
     for name in refs:
         depth = read_gt_depth(gt_dir / name, 0.001)
         img = model.image_by_name(name)
         cam = model.cameras[img.camera_id]
         h, w = depth.shape
-        K = np.diag([w / cam.width, h / cam.height, 1.0]) @ cam.K
+        K = np.diag([w / cam.width, h / cam.height, 1.0]) @ K_data
         out.append(GTView(name, K, np.asarray(img.cam_from_world, dtype=np.float64)[:3], depth))
     return out
 

@@ -45,6 +45,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -95,16 +96,21 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     from colmap_pvs.io.import_poses import ImportPosesConfig, import_poses
 
     pycolmap.logging.minloglevel = 2  # COLMAP's INFO lines would bury the table (errors still show)
+    from colmap_pvs.errors import ConfigError
+
     start = time.perf_counter()
-    model_dir = import_poses(
-        ImportPosesConfig(
-            image_path=data / "images",
-            poses_path=data,
-            output_path=work / "model",
-            format="hololens",
-            num_threads=threads if threads > 0 else -1,
-        )
+    config = ImportPosesConfig(
+        image_path=data / "images",
+        poses_path=data,
+        output_path=work / "model",
+        format="hololens",
+        num_threads=threads if threads > 0 else -1,
     )
+    try:
+        model_dir = import_poses(config)
+    except ConfigError as exc:  # the cached model was made with other settings: it is only a cache
+        print(f"[model] rebuilding: {exc}", flush=True)
+        model_dir = import_poses(replace(config, overwrite=True))
     print(f"[model] {model_dir} ready in {time.perf_counter() - start:.0f} s", flush=True)
     return model_dir
 
