@@ -39,9 +39,11 @@ MISS_KINDS = ("seen by no reference", "no completed depth", "completion wrong", 
               "geometric right")
 
 
-def project(points: np.ndarray, view, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel ``(col, row)`` and depth of ``points`` ``[P, 3]`` in ``view`` at map size ``(w, h)``; the
-    pixel is ``-1`` outside the image or behind the camera."""
+def project(points: np.ndarray, view, size: tuple[int, int], shift: float) -> tuple[np.ndarray, ...]:
+    """Pixel ``(col, row)`` and depth of ``points`` ``[P, 3]`` in ``view`` on a grid of size ``(w, h)``;
+    the pixel is ``-1`` outside the image or behind the camera. ``shift``: 0 for a grid whose pixel
+    ``(c, r)`` covers ``[c, c + 1)`` (the GT), 0.5 for a ``stereo/`` map (pixel ``(c, r)`` holds the ray of
+    ``(c, r)``: the nearest pixel is the rounded coordinate)."""
     w, h = size
     H, W = view.depth.shape
     K = np.diag([w / W, h / H, 1.0]) @ view.K
@@ -49,8 +51,8 @@ def project(points: np.ndarray, view, size: tuple[int, int]) -> tuple[np.ndarray
     z = cam[:, 2]
     uvw = cam @ K.T
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.floor(uvw[:, 0] / uvw[:, 2])
-        r = np.floor(uvw[:, 1] / uvw[:, 2])
+        u = np.floor(uvw[:, 0] / uvw[:, 2] + shift)
+        r = np.floor(uvw[:, 1] / uvw[:, 2] + shift)
     ok = (z > 0) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
     return np.where(ok, u, -1).astype(np.int64), np.where(ok, r, -1).astype(np.int64), z
 
@@ -67,8 +69,8 @@ def classify_misses(ws: Path, views, missed: np.ndarray) -> tuple[np.ndarray, np
         conf = read_array(ws / "stereo" / "confidence_maps" / f"{v.name}.filled.bin").reshape(h, w)
         geometric = read_depth_map(maps / f"{v.name}.geometric.bin")
         network = read_depth_map(maps / f"{v.name}.photometric.bin")
-        u, r, z = project(missed, v, (w, h))
-        ug, rg = project(missed, v, v.depth.shape[::-1])[:2]
+        u, r, z = project(missed, v, (w, h), 0.5)
+        ug, rg = project(missed, v, v.depth.shape[::-1], 0.0)[:2]
         seen = (u >= 0) & (ug >= 0)
         seen[seen] = np.abs(v.depth[rg[seen], ug[seen]] - z[seen]) < TOLERANCE
         idx = np.flatnonzero(seen)
@@ -131,6 +133,9 @@ def main() -> int:
     names = sorted(model.image_ids_by_name)
     refs = [n for n in names[a.offset :: a.stride]
             if (ws / "stereo" / "depth_maps" / f"{n}.filled.bin").is_file()]
+    if not refs:
+        print(f"no completion of the frames --offset {a.offset} --stride {a.stride} picks in {ws}")
+        return 2
     views = gt_views(model, refs, a.data / "depth")
     gt = gt_cloud(views, a.gt_voxel)
     points = read_points(cloud)

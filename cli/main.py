@@ -104,7 +104,7 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command(
         "import-poses",
-        "known poses + intrinsics -> COLMAP model with points triangulated (poses held fixed)",
+        "known poses + intrinsics -> COLMAP model with points triangulated (poses fixed, focal refined)",
         "colmap_pvs.io.import_poses:ImportPosesConfig",
         "colmap_pvs.io.import_poses:import_poses",
         "colmap_pvs.cli.reports_pipeline:report_import_poses",

@@ -28,21 +28,28 @@ def report_mesh(path: Path) -> str:
 
 
 def report_import_poses(path: Path) -> str:
+    import json
+
     import numpy as np
 
-    from colmap_pvs.io.import_poses import reprojection_errors
+    from colmap_pvs.io.import_poses import SETTINGS_FILENAME, reprojection_errors
     from colmap_pvs.io.sfm import model_counts
 
     counts = model_counts(path)
     errs = reprojection_errors(path)
     median = float(np.median(errs)) if errs.size else float("nan")
     mean = float(errs.mean()) if errs.size else float("nan")
+    try:
+        settings = json.loads((Path(path).parent / SETTINGS_FILENAME).read_text())["model_settings"]
+        held = "poses held fixed, focal lengths refined" if settings.get("refine_focal_length") else (
+            "poses and intrinsics held fixed")
+    except (OSError, ValueError, KeyError, TypeError):
+        held = "poses held fixed"
     return (
         f"model: {path}\n"
         f"images: {counts.num_reg_images}  cameras: {counts.num_cameras}  points: {counts.num_points3D}  "
         f"observations: {errs.size}\n"
-        f"reprojection error: median {_num(median, '.3f')} px, mean {_num(mean, '.3f')} px "
-        f"(poses and intrinsics held fixed)"
+        f"reprojection error: median {_num(median, '.3f')} px, mean {_num(mean, '.3f')} px ({held})"
     )
 
 

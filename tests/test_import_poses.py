@@ -153,7 +153,7 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
         assert image.camera.model_name == "PINHOLE"
         # exact intrinsics: the focal refinement moves them by noise only (0.3 % on these 5 images)
         np.testing.assert_allclose(image.camera.calibration_matrix(), model.camera_of(by_name[image.name]).K,
-                                   rtol=0.005)
+                                   rtol=0.01)
     # Resumable: a second call with the same settings returns the existing model without recomputing.
     mtime = (out / "points3D.bin").stat().st_mtime_ns
     import_poses(
@@ -170,8 +170,9 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
 
 def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_path, caplog):
     """Images rendered at focal 300 px but declared at 306 px: the default ``refine_focal_length`` brings
-    the focal length back to within 0.5 % of the true one (the poses and principal point stay as given),
-    and the triangulated points onto the surface; with it off the declared calibration is kept."""
+    the focal length back to within 1 % of the true one (0.3 % here; the poses and principal point stay
+    as given), and the triangulated points nearer the surface; with it off the declared calibration is
+    kept. A record from before the setting existed stands for a model made without the refinement."""
     import pycolmap
 
     gt = _analytic_scene_with_poses(tmp_path)
@@ -193,7 +194,7 @@ def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_p
     assert "focal length refined from 306.00, 306.00 to" in caplog.text
     kept = run("kept", refine_focal_length=False)
     poses = {e["name"]: np.array(e["cam_from_world"]) for e in entries}
-    for rec, focal, rtol in ((refined, 300.0, 0.005), (kept, 306.0, 1e-9)):
+    for rec, focal, rtol in ((refined, 300.0, 0.01), (kept, 306.0, 1e-9)):
         for image in rec.images.values():
             K = image.camera.calibration_matrix()
             np.testing.assert_allclose(K[[0, 1], [0, 1]], focal, rtol=rtol)
@@ -202,6 +203,15 @@ def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_p
     near = np.median(gt["scene"].distance(np.array([p.xyz for p in refined.points3D.values()])))
     far = np.median(gt["scene"].distance(np.array([p.xyz for p in kept.points3D.values()])))
     assert near < far, (near, far)
+    record = tmp_path / "kept" / "import_poses.json"
+    old = json.loads(record.read_text())
+    del old["model_settings"]["refine_focal_length"]
+    record.write_text(json.dumps(old))
+    mtime = (tmp_path / "kept" / "sparse" / "points3D.bin").stat().st_mtime_ns
+    run("kept", refine_focal_length=False)  # the same model: reused
+    assert (tmp_path / "kept" / "sparse" / "points3D.bin").stat().st_mtime_ns == mtime
+    with pytest.raises(ConfigError, match="refine_focal_length False -> True"):
+        run("kept")
 
 
 def _keypoint_counts(db_path) -> list[int]:

@@ -11,8 +11,9 @@ The focal lengths are refined by default (``refine_focal_length``: bundle adjust
 the principal point and the other intrinsics held fixed, as ``point_triangulator
 --refine_intrinsics 1`` with COLMAP's default ``--Mapper.ba_refine_focal_length 1``): with the poses
 fixed a focal length that is off by 1 % scales every triangulated depth, and so every dense depth, by
-about 1 %. On ``hololens-dev`` the focal length of its ``K.txt`` moves by -0.8 % and every kind of depth
-map gets more accurate (``benchmarks/RESULTS.md``). The change is logged, and warned about above 5 %.
+about 1 %. On ``hololens-dev`` the focal lengths of its ``K.txt`` move by -0.84 / -0.60 % (fx / fy) and
+every kind of depth map gets more accurate (``benchmarks/RESULTS.md``). The change is logged, and warned
+about above 5 %.
 
 Input formats (``format``):
 
@@ -77,6 +78,8 @@ logger = logging.getLogger(__name__)
 SETTINGS_FILENAME = "import_poses.json"
 #: Config fields that do not change the model (everything else does).
 _NOT_MODEL_SETTINGS = ("output_path", "num_threads", "overwrite")
+#: What a record from before a setting existed means for it (the behaviour of that older version).
+_SETTINGS_BEFORE_RECORDED = {"refine_focal_length": False}
 
 __all__ = [
     "ImportPosesConfig",
@@ -422,6 +425,7 @@ def _check_recorded_settings(config: ImportPosesConfig, out: Path) -> None:
     if not isinstance(recorded, dict):
         raise WorkspaceError(f"settings record {str(path)!r} has no 'model_settings'; pass --overwrite true")
     current = _model_settings(config)
+    recorded = {**_SETTINGS_BEFORE_RECORDED, **recorded}
     changed = [f"{k} {recorded.get(k)!r} -> {v!r}" for k, v in current.items() if recorded.get(k) != v]
     if changed:
         raise ConfigError(
@@ -569,12 +573,12 @@ def import_poses(config: ImportPosesConfig) -> Path:
             )
         result.write(str(tmp))
         os.replace(tmp, model_dir)
-        if config.refine_focal_length:
-            _log_focal_changes(given, result)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config))
+    if config.refine_focal_length:
+        _log_focal_changes(given, result)
     t3 = time.perf_counter()
     errs = reprojection_errors(model_dir)
     logger.info(
