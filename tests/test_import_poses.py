@@ -11,6 +11,7 @@ import pytest
 
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.io.import_poses import (
+    MIN_IMAGES_TO_REFINE_FOCAL,
     ImportPosesConfig,
     import_poses,
     read_known_cameras,
@@ -110,11 +111,12 @@ def test_json_and_csv_readers(tmp_path):
 # --------------------------------------------------------------------------- triangulation
 
 
-def _analytic_scene_with_poses(tmp_path) -> dict:
+def _analytic_scene_with_poses(tmp_path, n_views: int = 5) -> dict:
     """The analytic scene's workspace in ``tmp_path/ws`` and its exact cameras in ``tmp_path/poses.json``."""
     from scenes import make_analytic_workspace
 
-    gt = make_analytic_workspace(tmp_path / "ws", width=320, height=240, focal=300.0, write_maps=False)
+    gt = make_analytic_workspace(tmp_path / "ws", n_views=n_views, width=320, height=240, focal=300.0,
+                                 write_maps=False)
     model = gt["model"]
     entries = [
         {"name": im.name, "K": model.camera_of(im).K.tolist(), "cam_from_world": im.cam_from_world.tolist()}
@@ -151,9 +153,8 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
             image.cam_from_world().matrix(), by_name[image.name].cam_from_world, atol=1e-6
         )
         assert image.camera.model_name == "PINHOLE"
-        # exact intrinsics: the focal refinement moves them by noise only (0.3 % on these 5 images)
-        np.testing.assert_allclose(image.camera.calibration_matrix(), model.camera_of(by_name[image.name]).K,
-                                   rtol=0.01)
+        # 5 images: too few to refine the focal lengths (MIN_IMAGES_TO_REFINE_FOCAL), kept exactly
+        np.testing.assert_allclose(image.camera.calibration_matrix(), model.camera_of(by_name[image.name]).K)
     # Resumable: a second call with the same settings returns the existing model without recomputing.
     mtime = (out / "points3D.bin").stat().st_mtime_ns
     import_poses(
@@ -169,13 +170,14 @@ def test_analytic_scene_points_land_on_the_surface(tmp_path):
 
 
 def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_path, caplog):
-    """Images rendered at focal 300 px but declared at 306 px: the default ``refine_focal_length`` brings
-    the focal length back to within 1 % of the true one (0.3 % here; the poses and principal point stay
-    as given), and the triangulated points nearer the surface; with it off the declared calibration is
-    kept. A record from before the setting existed stands for a model made without the refinement."""
+    """10 images rendered at focal 300 px but declared at 306 px: the default ``refine_focal_length``
+    brings the focal length back to within 1 % of the true one (the poses and principal point stay as
+    given), and the triangulated points nearer the surface; with it off, or with fewer images than
+    ``MIN_IMAGES_TO_REFINE_FOCAL``, the declared calibration is kept. A record from before the setting
+    existed stands for a model made without the refinement."""
     import pycolmap
 
-    gt = _analytic_scene_with_poses(tmp_path)
+    gt = _analytic_scene_with_poses(tmp_path, n_views=MIN_IMAGES_TO_REFINE_FOCAL)
     entries = json.loads((tmp_path / "poses.json").read_text())["images"]
     for e in entries:
         e["K"][0][0] *= 1.02
@@ -193,8 +195,12 @@ def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_p
         refined = run("refined")
     assert "focal length refined from 306.00, 306.00 to" in caplog.text
     kept = run("kept", refine_focal_length=False)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="colmap_pvs.io.import_poses"):
+        few = run("few", max_images=MIN_IMAGES_TO_REFINE_FOCAL - 1)
+    assert f"has {MIN_IMAGES_TO_REFINE_FOCAL - 1} image(s)" in caplog.text
     poses = {e["name"]: np.array(e["cam_from_world"]) for e in entries}
-    for rec, focal, rtol in ((refined, 300.0, 0.01), (kept, 306.0, 1e-9)):
+    for rec, focal, rtol in ((refined, 300.0, 0.01), (kept, 306.0, 1e-9), (few, 306.0, 1e-9)):
         for image in rec.images.values():
             K = image.camera.calibration_matrix()
             np.testing.assert_allclose(K[[0, 1], [0, 1]], focal, rtol=rtol)

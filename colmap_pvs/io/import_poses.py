@@ -7,7 +7,8 @@ CPU with pycolmap, and points are triangulated with every pose **held fixed**
 ordinary COLMAP model (``cameras/images/points3D.bin``, PINHOLE cameras) for view selection,
 depth ranges and ``undistort``.
 
-The focal lengths are refined by default (``refine_focal_length``: bundle adjustment with the poses,
+The focal lengths are refined by default where every camera has at least
+:data:`MIN_IMAGES_TO_REFINE_FOCAL` images (``refine_focal_length``: bundle adjustment with the poses,
 the principal point and the other intrinsics held fixed, as ``point_triangulator
 --refine_intrinsics 1`` with COLMAP's default ``--Mapper.ba_refine_focal_length 1``): with the poses
 fixed a focal length that is off by 1 % scales every triangulated depth, and so every dense depth, by
@@ -78,6 +79,10 @@ logger = logging.getLogger(__name__)
 SETTINGS_FILENAME = "import_poses.json"
 #: Config fields that do not change the model (everything else does).
 _NOT_MODEL_SETTINGS = ("output_path", "num_threads", "overwrite")
+#: Fewest images of a camera for ``refine_focal_length`` to move its focal lengths: on 3 frames of
+#: hololens-dev the refinement moves them by +1.4 / +4.3 % (reprojection error 0.53 -> 0.39 px, overfit),
+#: on 8 by -0.2 / 0.0 %, on 15 to 178 by -0.7 to -0.9 / -0.5 to -0.8 % (``benchmarks/RESULTS.md``).
+MIN_IMAGES_TO_REFINE_FOCAL = 10
 #: What a record from before a setting existed means for it (the behaviour of that older version).
 _SETTINGS_BEFORE_RECORDED = {"refine_focal_length": False}
 
@@ -434,6 +439,19 @@ def _check_recorded_settings(config: ImportPosesConfig, out: Path) -> None:
         )
 
 
+def _enough_images_to_refine(db_images) -> bool:
+    """Whether every camera has :data:`MIN_IMAGES_TO_REFINE_FOCAL` images (else one line says why not)."""
+    counts: dict[int, int] = {}
+    for im in db_images:
+        counts[im.camera_id] = counts.get(im.camera_id, 0) + 1
+    few = {cid: n for cid, n in counts.items() if n < MIN_IMAGES_TO_REFINE_FOCAL}
+    if few:
+        cid, n = min(few.items(), key=lambda item: item[1])
+        logger.info("import-poses: focal lengths kept as given: camera %d has %d image(s), the refinement "
+                    "needs %d per camera", cid, n, MIN_IMAGES_TO_REFINE_FOCAL)
+    return not few
+
+
 def _log_focal_changes(given: dict[int, np.ndarray], refined) -> None:
     """Log how far the bundle adjustment moved each camera's focal lengths ``given`` (``{camera id: [fx,
     fy]}``) in ``refined``; a warning above 5 %."""
@@ -560,12 +578,13 @@ def import_poses(config: ImportPosesConfig) -> Path:
     tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=out)
     try:
         given = {i: np.array(c.params[:2], dtype=np.float64) for i, c in rec.cameras.items()}
+        refine = config.refine_focal_length and _enough_images_to_refine(db_images)
         options = pycolmap.IncrementalPipelineOptions()
-        options.ba_refine_focal_length = config.refine_focal_length
+        options.ba_refine_focal_length = refine
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
         result = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp), options=options,
-                                             refine_intrinsics=config.refine_focal_length)
+                                             refine_intrinsics=refine)
         if result.num_points3D() == 0:
             raise WorkspaceError(
                 f"no points could be triangulated from {len(cams)} images: too few matches (check the poses, "
@@ -577,7 +596,7 @@ def import_poses(config: ImportPosesConfig) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config))
-    if config.refine_focal_length:
+    if refine:
         _log_focal_changes(given, result)
     t3 = time.perf_counter()
     errs = reprojection_errors(model_dir)
