@@ -143,9 +143,10 @@ class ImportPosesConfig:
     refine_focal_length: bool = field(
         default=True,
         metadata={
-            "help": "refine each camera's focal length by bundle adjustment with the poses held fixed "
-            "(COLMAP's point_triangulator --refine_intrinsics): a focal length 1 % off biases "
-            "every depth by about 1 %"
+            "help": "refine the focal lengths by bundle adjustment with the poses held fixed (COLMAP's "
+            f"point_triangulator --refine_intrinsics), where every camera has {MIN_IMAGES_TO_REFINE_FOCAL} "
+            "images or more: a focal "
+            "length 1 % off biases every depth by about 1 %"
         },
     )
     num_threads: int = field(default=-1, metadata={"help": "CPU threads for SIFT and matching; -1 = all"})
