@@ -79,9 +79,8 @@ logger = logging.getLogger(__name__)
 SETTINGS_FILENAME = "import_poses.json"
 #: Config fields that do not change the model (everything else does).
 _NOT_MODEL_SETTINGS = ("output_path", "num_threads", "overwrite")
-#: Fewest images of a camera for ``refine_focal_length`` to move its focal lengths: on 3 frames of
-#: hololens-dev the refinement moves them by +1.4 / +4.3 % (reprojection error 0.53 -> 0.39 px, overfit),
-#: on 8 by -0.2 / 0.0 %, on 15 to 178 by -0.7 to -0.9 / -0.5 to -0.8 % (``benchmarks/RESULTS.md``).
+#: Fewest images of a camera for ``refine_focal_length`` to move its focal lengths: on fewer frames of
+#: hololens-dev the refinement fits the noise (``benchmarks/RESULTS.md``).
 MIN_IMAGES_TO_REFINE_FOCAL = 10
 #: What a record from before a setting existed means for it (the behaviour of that older version).
 _SETTINGS_BEFORE_RECORDED = {"refine_focal_length": False}
