@@ -104,7 +104,7 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command(
         "import-poses",
-        "known poses + intrinsics -> COLMAP model with points triangulated (poses fixed, focal refined)",
+        "known poses -> COLMAP model with triangulated points (poses fixed; focal refined from 10 images)",
         "colmap_pvs.io.import_poses:ImportPosesConfig",
         "colmap_pvs.io.import_poses:import_poses",
         "colmap_pvs.cli.reports_pipeline:report_import_poses",

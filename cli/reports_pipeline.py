@@ -40,9 +40,9 @@ def report_import_poses(path: Path) -> str:
     median = float(np.median(errs)) if errs.size else float("nan")
     mean = float(errs.mean()) if errs.size else float("nan")
     try:
-        settings = json.loads((Path(path).parent / SETTINGS_FILENAME).read_text())["model_settings"]
-        held = "poses held fixed, focal lengths refined" if settings.get("refine_focal_length") else (
-            "poses and intrinsics held fixed")
+        record = json.loads((Path(path).parent / SETTINGS_FILENAME).read_text())
+        refined = record.get("focal_lengths_refined", record["model_settings"].get("refine_focal_length"))
+        held = "poses held fixed, focal lengths refined" if refined else "poses and intrinsics held fixed"
     except (OSError, ValueError, KeyError, TypeError):
         held = "poses held fixed"
     return (

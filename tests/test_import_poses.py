@@ -199,6 +199,10 @@ def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_p
     with caplog.at_level(logging.INFO, logger="colmap_pvs.io.import_poses"):
         few = run("few", max_images=MIN_IMAGES_TO_REFINE_FOCAL - 1)
     assert f"has {MIN_IMAGES_TO_REFINE_FOCAL - 1} image(s)" in caplog.text
+    from colmap_pvs.cli.reports_pipeline import report_import_poses  # says what was actually held
+
+    assert "focal lengths refined" in report_import_poses(tmp_path / "refined" / "sparse")
+    assert "poses and intrinsics held fixed" in report_import_poses(tmp_path / "few" / "sparse")
     poses = {e["name"]: np.array(e["cam_from_world"]) for e in entries}
     for rec, focal, rtol in ((refined, 300.0, 0.01), (kept, 306.0, 1e-9), (few, 306.0, 1e-9)):
         for image in rec.images.values():
@@ -218,6 +222,28 @@ def test_a_focal_length_off_by_two_percent_is_refined_with_the_poses_fixed(tmp_p
     assert (tmp_path / "kept" / "sparse" / "points3D.bin").stat().st_mtime_ns == mtime
     with pytest.raises(ConfigError, match="refine_focal_length False -> True"):
         run("kept")
+
+
+def test_one_camera_with_too_few_images_keeps_every_focal_length_with_a_warning(caplog):
+    """The focal lengths move only where every camera has ``MIN_IMAGES_TO_REFINE_FOCAL`` images; a camera
+    short of them stops the refinement of all, with a warning naming it when others had enough."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.io.import_poses import _enough_images_to_refine
+
+    def images(counts: dict[int, int]) -> list:
+        return [SimpleNamespace(camera_id=c) for c, n in counts.items() for _ in range(n)]
+
+    enough = MIN_IMAGES_TO_REFINE_FOCAL
+    assert _enough_images_to_refine(images({1: enough, 2: enough + 5}))
+    with caplog.at_level(logging.INFO, logger="colmap_pvs.io.import_poses"):
+        assert not _enough_images_to_refine(images({1: enough + 2, 2: 3}))
+    assert [r.levelno for r in caplog.records] == [logging.WARNING]
+    assert "camera 2 has 3 image(s)" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="colmap_pvs.io.import_poses"):
+        assert not _enough_images_to_refine(images({1: enough - 1}))
+    assert [r.levelno for r in caplog.records] == [logging.INFO]
 
 
 def _keypoint_counts(db_path) -> list[int]:

@@ -447,8 +447,10 @@ def _enough_images_to_refine(db_images) -> bool:
     few = {cid: n for cid, n in counts.items() if n < MIN_IMAGES_TO_REFINE_FOCAL}
     if few:
         cid, n = min(few.items(), key=lambda item: item[1])
-        logger.info("import-poses: focal lengths kept as given: camera %d has %d image(s), the refinement "
-                    "needs %d per camera", cid, n, MIN_IMAGES_TO_REFINE_FOCAL)
+        # where other cameras could have been refined, the user may want to know why none was
+        level = logging.WARNING if len(few) < len(counts) else logging.INFO
+        logger.log(level, "import-poses: focal lengths kept as given: camera %d has %d image(s), the "
+                   "refinement needs %d per camera", cid, n, MIN_IMAGES_TO_REFINE_FOCAL)
     return not few
 
 
@@ -470,7 +472,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
 
     Steps: read the cameras, check that every image exists (and its size where declared),
     extract SIFT (one COLMAP camera per distinct ``K``/size, PINHOLE), match (exhaustive or
-    sequential), triangulate with the poses fixed, refining the focal lengths (``refine_focal_length``).
+    sequential), triangulate with the poses fixed, refining the focal lengths (``refine_focal_length``,
+    where every camera has :data:`MIN_IMAGES_TO_REFINE_FOCAL` images).
     Resumable: an existing model in ``output_path/sparse`` made with the same settings
     (``output_path/import_poses.json``) is returned unless ``overwrite``. The model is written to a
     temporary folder and renamed into place.
@@ -595,7 +598,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config))
+    save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config),
+                focal_lengths_refined=refine)
     if refine:
         _log_focal_changes(given, result)
     t3 = time.perf_counter()
