@@ -97,6 +97,26 @@ def gt_cloud(views: list[GTView], voxel: float) -> np.ndarray:
     return np.asarray(pcd.points, dtype=np.float64)
 
 
+def project(points: np.ndarray, view: GTView, size: tuple[int, int] | None = None,
+            shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel ``(col, row)`` and depth ``z`` of ``points`` ``[P, 3]`` in ``view`` on a grid of ``size``
+    ``(w, h)`` (default: the GT's own); the pixel is ``-1`` outside the image or behind the camera.
+    ``shift``: 0 for a grid whose pixel ``(c, r)`` covers ``[c, c + 1)`` (the GT), 0.5 for a ``stereo/``
+    map (pixel ``(c, r)`` holds the ray of ``(c, r)``: the nearest pixel is the rounded coordinate)."""
+    H, W = view.depth.shape
+    w, h = (W, H) if size is None else size
+    K = np.diag([w / W, h / H, 1.0]) @ view.K
+    cam = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ view.cam_from_world[:, :3].T
+    cam += view.cam_from_world[:, 3]
+    z = cam[:, 2]
+    uvw = cam @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(uvw[:, 0] / uvw[:, 2] + shift)
+        r = np.floor(uvw[:, 1] / uvw[:, 2] + shift)
+    ok = (z > 1e-9) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+    return np.where(ok, u, -1).astype(np.int64), np.where(ok, r, -1).astype(np.int64), z
+
+
 def observed_mask(points: np.ndarray, views: list[GTView], behind: float) -> np.ndarray:
     """``[P]`` bool: the points some view's GT depth observes, ETH3D's idea with depth maps instead of
     laser beams. A point is observed by a view when it lies in front of its camera, projects inside its
@@ -106,16 +126,9 @@ def observed_mask(points: np.ndarray, views: list[GTView], behind: float) -> np.
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     seen = np.zeros(len(points), bool)
     for v in views:
-        h, w = v.depth.shape
-        cam = points @ v.cam_from_world[:, :3].T + v.cam_from_world[:, 3]
-        z = cam[:, 2]
-        front = z > 1e-9
-        uvw = cam[front] @ v.K.T
-        u = np.floor(uvw[:, 0] / uvw[:, 2])
-        r = np.floor(uvw[:, 1] / uvw[:, 2])
-        inside = (u >= 0) & (u < w) & (r >= 0) & (r < h)
-        idx = np.flatnonzero(front)[inside]
-        d = v.depth[r[inside].astype(np.int64), u[inside].astype(np.int64)]
+        u, r, z = project(points, v)
+        idx = np.flatnonzero(u >= 0)
+        d = v.depth[r[idx], u[idx]]
         ok = (d > 0) & (z[idx] <= d + behind)
         seen[idx[ok]] = True
     return seen

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import real_depth as rd
-from cloud_benchmark import gt_cloud, gt_views, observed_mask, read_points
+from cloud_benchmark import gt_cloud, gt_views, observed_mask, project, read_points
 from scipy.spatial import cKDTree
 
 from colmap_pvs.fusion import image_indices
@@ -37,24 +37,6 @@ from colmap_pvs.io.sparse import read_sparse_model
 TOLERANCE = 0.05
 MISS_KINDS = ("seen by no reference", "no completed depth", "completion wrong", "completion right",
               "geometric right")
-
-
-def project(points: np.ndarray, view, size: tuple[int, int], shift: float) -> tuple[np.ndarray, ...]:
-    """Pixel ``(col, row)`` and depth of ``points`` ``[P, 3]`` in ``view`` on a grid of size ``(w, h)``;
-    the pixel is ``-1`` outside the image or behind the camera. ``shift``: 0 for a grid whose pixel
-    ``(c, r)`` covers ``[c, c + 1)`` (the GT), 0.5 for a ``stereo/`` map (pixel ``(c, r)`` holds the ray of
-    ``(c, r)``: the nearest pixel is the rounded coordinate)."""
-    w, h = size
-    H, W = view.depth.shape
-    K = np.diag([w / W, h / H, 1.0]) @ view.K
-    cam = points @ view.cam_from_world[:, :3].T + view.cam_from_world[:, 3]
-    z = cam[:, 2]
-    uvw = cam @ K.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.floor(uvw[:, 0] / uvw[:, 2] + shift)
-        r = np.floor(uvw[:, 1] / uvw[:, 2] + shift)
-    ok = (z > 0) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
-    return np.where(ok, u, -1).astype(np.int64), np.where(ok, r, -1).astype(np.int64), z
 
 
 def classify_misses(ws: Path, views, missed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +52,7 @@ def classify_misses(ws: Path, views, missed: np.ndarray) -> tuple[np.ndarray, np
         geometric = read_depth_map(maps / f"{v.name}.geometric.bin")
         network = read_depth_map(maps / f"{v.name}.photometric.bin")
         u, r, z = project(missed, v, (w, h), 0.5)
-        ug, rg = project(missed, v, v.depth.shape[::-1], 0.0)[:2]
+        ug, rg = project(missed, v)[:2]
         seen = (u >= 0) & (ug >= 0)
         seen[seen] = np.abs(v.depth[rg[seen], ug[seen]] - z[seen]) < TOLERANCE
         idx = np.flatnonzero(seen)

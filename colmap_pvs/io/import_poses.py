@@ -61,6 +61,7 @@ import logging
 import os
 import shutil
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -441,9 +442,7 @@ def _check_recorded_settings(config: ImportPosesConfig, out: Path) -> None:
 
 def _enough_images_to_refine(db_images) -> bool:
     """Whether every camera has :data:`MIN_IMAGES_TO_REFINE_FOCAL` images (else one line says why not)."""
-    counts: dict[int, int] = {}
-    for im in db_images:
-        counts[im.camera_id] = counts.get(im.camera_id, 0) + 1
+    counts = Counter(im.camera_id for im in db_images)
     few = {cid: n for cid, n in counts.items() if n < MIN_IMAGES_TO_REFINE_FOCAL}
     if few:
         cid, n = min(few.items(), key=lambda item: item[1])

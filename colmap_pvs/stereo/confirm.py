@@ -89,7 +89,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
             and record.get("geometric_depth_sha256") == geometric_sha256):  # not rewritten since
         return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
     t0 = time.perf_counter()
-    depth, normals, conf = pure_geometric(ws, name)
+    depth, normals, conf = pure_geometric(ws, name, geometric_sha256)
     ref, fconf = _supported_completion(ctx, name)
     supported = ref.depth
     srcs = [_supported_completion(ctx, s)[0] for s in sources]

@@ -305,10 +305,11 @@ def confirm_provenance_path(ws: Workspace, name: str) -> Path:
     return ws.stereo_dir / "provenance" / f"{name}.confirm.json"
 
 
-def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def pure_geometric(ws: Workspace, name: str, depth_sha256: str | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``name``'s geometric depth, normals and confidence without the pixels a confirmation added to
-    these very maps (it recorded their fingerprint and, once done, their depth file's sha256);
-    ``None`` without geometric maps."""
+    these very maps (it recorded their fingerprint and, once done, their depth file's sha256, which a
+    caller that has it passes as ``depth_sha256``); ``None`` without geometric maps."""
     geo = read_provenance(ws, name, "geometric")
     depth_path = ws.depth_map_path(name, "geometric")
     if geo is None or not depth_path.is_file():
@@ -320,7 +321,7 @@ def pure_geometric(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np
     added_path = confirm_map_path(ws, name)
     written = (record or {}).get("geometric_depth_sha256")  # absent while a confirmation is writing
     if (record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file()
-            and (written is None or written == file_sha256(depth_path))):  # not rewritten by another tool
+            and (written is None or written == (depth_sha256 or file_sha256(depth_path)))):  # not rewritten
         added = read_depth_map(added_path) > 0
         if added.shape == depth.shape:
             depth, conf = np.where(added, 0.0, depth), np.where(added, 0.0, conf)
