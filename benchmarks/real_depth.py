@@ -93,11 +93,10 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     """The cached COLMAP model of the sequence built from its known poses."""
     import pycolmap
 
+    from colmap_pvs.errors import ConfigError
     from colmap_pvs.io.import_poses import ImportPosesConfig, import_poses
 
     pycolmap.logging.minloglevel = 2  # COLMAP's INFO lines would bury the table (errors still show)
-    from colmap_pvs.errors import ConfigError
-
     start = time.perf_counter()
     config = ImportPosesConfig(
         image_path=data / "images",

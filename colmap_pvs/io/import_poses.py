@@ -145,8 +145,7 @@ class ImportPosesConfig:
         metadata={
             "help": "refine the focal lengths by bundle adjustment with the poses held fixed (COLMAP's "
             f"point_triangulator --refine_intrinsics), where every camera has {MIN_IMAGES_TO_REFINE_FOCAL} "
-            "images or more: a focal "
-            "length 1 % off biases every depth by about 1 %"
+            "images or more: a focal length 1 % off biases every depth by about 1 %"
         },
     )
     num_threads: int = field(default=-1, metadata={"help": "CPU threads for SIFT and matching; -1 = all"})
