@@ -47,6 +47,15 @@ def test_agree_mean_of_agreeing_and_drops_disagreement(tl):
     assert np.all(depth[10:] > 0)
 
 
+def test_a_single_estimate_is_its_own_candidate_where_valid(tl):
+    a = np.full((H, W), 3.0, np.float32)
+    valid = np.ones((1, H, W), bool)
+    valid[0, :5] = False
+    depth, count = tl.agree(a[None], valid, 0.01)
+    assert np.all(depth[:5] == 0) and np.all(count[:5] == 0)
+    assert np.allclose(depth[5:], 3.0) and np.all(count[5:] == 1)
+
+
 def test_agree_all_three_counted(tl):
     a = np.full((H, W), 2.0, np.float32)
     depth, count = tl.agree(np.stack([a, a * 1.002, a * 0.998]), np.ones((3, H, W), bool), 0.01)

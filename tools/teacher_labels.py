@@ -35,7 +35,9 @@ folders. Per scene:
    own confidence at full resolution (images resized to the teacher's multiple of 32 / 8 and the
    maps resized back). Raw outputs are cached in ``OUT/<scene>/teacher_cache/<estimate>/NAME.npz``.
 4. Agreement: a pixel is a candidate where at least ``--min_agree`` estimates agree within
-   ``--agree_tol`` relative depth; its depth is the mean of the agreeing estimates.
+   ``--agree_tol`` relative depth; its depth is the mean of the agreeing estimates. With a single
+   estimate (``--estimates itermvs_blended:0-10 --min_agree 1``) each of its valid pixels is a
+   candidate, and only the view check below filters it.
 5. Multi-view consistency: the candidate depth is reprojected into the candidate maps of the
    reference's first ``--check_views`` ranked sources that are references themselves; a view
    confirms a pixel when the round trip lands within ``--geo_pixel`` px and the depths differ by
@@ -291,7 +293,8 @@ def agree(depths: np.ndarray, valid: np.ndarray, rel_tol: float) -> tuple[np.nda
     Two estimates agree at a pixel when both are valid and ``|a - b| <= rel_tol * min(a, b)``. Per
     pixel the estimate that agrees with the most others is the anchor; the agreeing set is the anchor
     and those agreeing with it. Returns ``(depth, count)``: the mean depth of the agreeing set and its
-    size (1 where nothing agrees, 0 where no estimate is valid; depth 0 where ``count < 2``).
+    size (1 where nothing agrees, 0 where no estimate is valid; depth 0 where ``count < 2``, except
+    with a single estimate, which is its own depth wherever it is valid: the view check then filters it).
     """
     depths = np.asarray(depths, np.float32)
     valid = np.asarray(valid, bool) & (depths > 0) & np.isfinite(depths)
@@ -311,7 +314,7 @@ def agree(depths: np.ndarray, valid: np.ndarray, rel_tol: float) -> tuple[np.nda
     count = member.sum(axis=0)
     count = np.where(valid.any(axis=0), count, 0)
     depth = np.where(member, depths, 0).sum(axis=0) / np.maximum(count, 1)
-    depth = np.where(count >= 2, depth, 0).astype(np.float32)
+    depth = np.where(count >= min(2, t), depth, 0).astype(np.float32)
     return depth, count.astype(np.int32)
 
 
