@@ -286,18 +286,16 @@ def main() -> int:
     p.add_argument("--json", type=Path, help="default: the workspace's cloud_benchmark.json")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if not (a.data / "poses.txt").is_file():
-        print(f"hololens-dev data not found at {a.data}; nothing to do")
-        return 2
     wall_start = time.perf_counter()
-    work = a.work_dir.resolve()
-    work.mkdir(parents=True, exist_ok=True)
-    sparse = rd.build_model(a.data, work, a.threads)
+    prepared = rd.quick_model(a)
+    if prepared is None:
+        return 2
+    work, sparse = prepared
     model = read_sparse_model(sparse)
     names = sorted(model.image_ids_by_name)
     sel = select_views(model, config_from_dict(ViewSelectionConfig, {"num_views": a.num_views}))
-    refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
-    sources = {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in refs}
+    sources = rd.quick_sources(names, sel, a)
+    refs = list(sources)
     ws = rd.make_workspace(work / "quick" / f"{a.tag}_clean", a.data / "images", sparse, a.resume)
     write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
     start = time.perf_counter()

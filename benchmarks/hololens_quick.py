@@ -44,12 +44,10 @@ def main() -> int:
     p.add_argument("--views", nargs="*", default=[], metavar="KEY=VALUE", help="ViewSelectionConfig fields")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if not (a.data / "poses.txt").is_file():
-        print(f"hololens-dev data not found at {a.data}; nothing to do")
+    prepared = rd.quick_model(a)
+    if prepared is None:
         return 2
-    work = a.work_dir.resolve()
-    work.mkdir(parents=True, exist_ok=True)
-    sparse = rd.build_model(a.data, work, a.threads)
+    work, sparse = prepared
     model = read_sparse_model(sparse)
     names = sorted(model.image_ids_by_name)
     view_fields = {"num_views": a.num_views, **rd.parse_overrides(a.views)}

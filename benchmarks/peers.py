@@ -53,12 +53,10 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=2)
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if not (a.data / "poses.txt").is_file():
-        print(f"hololens-dev data not found at {a.data}; nothing to do")
+    prepared = rd.quick_model(a)
+    if prepared is None:
         return 2
-    work = a.work_dir.resolve()
-    work.mkdir(parents=True, exist_ok=True)
-    sparse = rd.build_model(a.data, work, a.threads)
+    work, sparse = prepared
     torch.set_num_threads(a.threads)
     repos = {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet}
     for key in a.teachers:
@@ -66,9 +64,8 @@ def main() -> int:
         ws = rd.make_workspace(work / "quick" / f"peer_{key}_n{a.num_views}_o{a.offset}", a.data / "images",
                                sparse, keep_stereo=True)
         sd = tl.load_scene(ws, 1, config_from_dict(ViewSelectionConfig, {"num_views": a.num_views}))
-        names = sorted(sd.Ks)
-        refs = [n for n in names[a.offset :: a.stride] if n in sd.selection.references]
-        sources = {r: list(sd.selection.references[r].ranked_names)[: a.num_views - 1] for r in refs}
+        sources = rd.quick_sources(list(sd.Ks), sd.selection, a)
+        refs = list(sources)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
         images = tl.ImageCache(ws)
         seconds = []

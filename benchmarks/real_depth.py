@@ -89,6 +89,25 @@ def git_commit() -> str:
     return commit + ("-dirty" if dirty else "")
 
 
+def quick_model(args: argparse.Namespace) -> tuple[Path, Path] | None:
+    """``(work, sparse)`` of a quick benchmark (``args.data``, ``args.work_dir``, ``args.threads``): the
+    work folder and the cached COLMAP model, or ``None`` (after saying so) without the hololens-dev data."""
+    if not (args.data / "poses.txt").is_file():
+        print(f"hololens-dev data not found at {args.data}; nothing to do")
+        return None
+    work = args.work_dir.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    return work, build_model(args.data, work, args.threads)
+
+
+def quick_sources(names: list[str], selection, args: argparse.Namespace) -> dict[str, list[str]]:
+    """The evaluated references of ``names`` (every ``args.stride``-th from ``args.offset``, if the
+    :class:`~colmap_pvs.views.ViewSelection` ``selection`` made them references) and their top
+    ``args.num_views - 1`` sources by view score."""
+    refs = [n for n in sorted(names)[args.offset :: args.stride] if n in selection.references]
+    return {r: list(selection.references[r].ranked_names)[: args.num_views - 1] for r in refs}
+
+
 def build_model(data: Path, work: Path, threads: int) -> Path:
     """The cached COLMAP model of the sequence built from its known poses."""
     import pycolmap
