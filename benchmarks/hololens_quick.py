@@ -53,9 +53,11 @@ def main() -> int:
     view_fields = {"num_views": a.num_views, **rd.parse_overrides(a.views)}
     view_cfg = config_from_dict(ViewSelectionConfig, view_fields)
     sel = select_views(model, view_cfg)
-    refs = [n for n in names[a.offset :: a.stride] if n in sel.references]
-    computed = list(sel.references) if a.all_references else refs
-    settings = [("clean", {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in computed})]
+    clean = rd.quick_sources(names, sel, a)
+    refs = list(clean)
+    if a.all_references:  # every frame a reference; the evaluated ones keep their sources
+        clean = {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in sel.references}
+    settings = [("clean", clean)]
     if a.disturbed:
         far = {}
         for r in refs:

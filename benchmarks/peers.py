@@ -2,8 +2,9 @@
 
 IterMVS (DTU and BlendedMVS weights) and PatchmatchNet, run by ``tools/teacher_labels.py``'s
 :class:`Teacher` (their clones stay outside the repository; see that tool's docstring), on the
-references and sources of ``hololens_quick.py`` (the same cached COLMAP model, the top ``N - 1``
-sources by view score, the same depth ranges, 540 px), scored by the same
+references and sources of ``hololens_quick.py`` (the same cached COLMAP model, the first ``N - 1`` of
+each reference's ranked sources, the same depth ranges), at the images' own size (hololens-dev's
+540 x 360, which is also ``hololens_quick.py``'s map size), scored by the same
 :func:`colmap_pvs.evaluate.evaluate_depth`. Each peer's depth is written as the photometric map of its
 own workspace ``WORK/quick/peer_<teacher>_n<N>_o<offset>``, so its numbers read like ours::
 
@@ -12,17 +13,20 @@ own workspace ``WORK/quick/peer_<teacher>_n<N>_o<offset>``, so its numbers read 
     python benchmarks/hololens_quick.py --stride 3 --num_views 11 --tag n11 \\
         --stereo geom_consistency=false geom_fill=false   # ours, the same references and sources
 
-A rerun keeps the maps whose teacher, sources and depth range are unchanged.
+A rerun keeps a map only where its record (``stereo/provenance/NAME.peer.json``: teacher, weights,
+sources, depth range, cameras and image size) is unchanged. The seconds printed are the mean forward
+time of the maps computed now, the first (warm-up) one left out.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import sys
-import time
 from pathlib import Path
+from time import perf_counter
 
 import numpy as np
 import real_depth as rd
@@ -39,59 +43,76 @@ from colmap_pvs.io.workspace import write_patch_match_cfg  # noqa: E402
 from colmap_pvs.views import ViewSelectionConfig  # noqa: E402
 
 
+def record_of(teacher: tl.Teacher, sd: tl.SceneData, ref: str, sources: list[str], image) -> str:
+    """What a map depends on, as a string: the teacher's cache key plus the views' cameras and size."""
+    views = [ref, *sources]
+    cams = np.concatenate([np.ravel(sd.Ks[n]) for n in views] + [np.ravel(sd.poses[n]) for n in views])
+    depth_range = sd.selection.references[ref].depth_range
+    meta = json.loads(tl.estimate_meta(teacher.key, teacher, ref, sources, depth_range))
+    meta["cameras_sha256"] = hashlib.sha256(cams.astype(np.float64).tobytes()).hexdigest()
+    meta["image_size"] = list(image.shape[:2])
+    return json.dumps(meta, sort_keys=True)
+
+
+def stored_record(path: Path) -> str | None:
+    """The record a map was made with, or ``None`` (no record, or one that cannot be read)."""
+    try:
+        return json.dumps(json.loads(path.read_text())["record"], sort_keys=True)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--itermvs", type=Path, required=True, help="a clone of IterMVS with its checkpoints/")
-    p.add_argument("--patchmatchnet", type=Path, required=True, help="a clone of PatchmatchNet")
-    p.add_argument("--teachers", nargs="*", default=sorted(tl.TEACHER_KINDS),
-                   choices=sorted(tl.TEACHER_KINDS))
-    p.add_argument("--data", type=Path, default=rd.DEFAULT_DATA)
-    p.add_argument("--work_dir", type=Path, default=rd.DEFAULT_WORK)
-    p.add_argument("--stride", type=int, default=9)
-    p.add_argument("--offset", type=int, default=0)
-    p.add_argument("--num_views", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--itermvs", type=Path, help="a clone of IterMVS with its checkpoints/ (for itermvs_*)")
+    p.add_argument("--patchmatchnet", type=Path, help="a clone of PatchmatchNet (for patchmatchnet)")
+    kinds = sorted(tl.TEACHER_KINDS)
+    p.add_argument("--teachers", nargs="*", default=kinds, choices=kinds)
+    rd.add_frame_args(p, stride=9)
     a = p.parse_args()
+    repos = {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet}
+    for key in a.teachers:
+        if repos[tl.TEACHER_KINDS[key].repo] is None:
+            p.error(f"--teachers {key} needs --{tl.TEACHER_KINDS[key].repo}")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     prepared = rd.quick_model(a)
     if prepared is None:
         return 2
     work, sparse = prepared
     torch.set_num_threads(a.threads)
-    repos = {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet}
     for key in a.teachers:
         teacher = tl.Teacher(key, repos[tl.TEACHER_KINDS[key].repo])
         ws = rd.make_workspace(work / "quick" / f"peer_{key}_n{a.num_views}_o{a.offset}", a.data / "images",
                                sparse, keep_stereo=True)
         sd = tl.load_scene(ws, 1, config_from_dict(ViewSelectionConfig, {"num_views": a.num_views}))
         sources = rd.quick_sources(list(sd.Ks), sd.selection, a)
-        refs = list(sources)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
+        (ws / "stereo" / "provenance").mkdir(parents=True, exist_ok=True)
         images = tl.ImageCache(ws)
         seconds = []
-        for r in tqdm(refs, desc=f"{key} N={a.num_views}", unit="image"):
-            rng = sd.selection.references[r].depth_range
-            meta = tl.estimate_meta(key, teacher, r, sources[r], rng)
-            out = ws / "stereo" / "depth_maps" / f"{r}.photometric.bin"
-            stamp = out.with_suffix(".json")
-            if out.is_file() and stamp.is_file() and json.loads(stamp.read_text()).get("meta") == meta:
+        for ref, srcs in tqdm(sources.items(), desc=f"{key} N={a.num_views}", unit="image"):
+            views = [ref, *srcs]
+            record = record_of(teacher, sd, ref, srcs, images.get(ref))
+            out = ws / "stereo" / "depth_maps" / f"{ref}.photometric.bin"
+            stamp = ws / "stereo" / "provenance" / f"{ref}.peer.json"
+            if out.is_file() and stored_record(stamp) == record:
                 continue
-            views = [r, *sources[r]]
-            t0 = time.perf_counter()
+            stamp.unlink(missing_ok=True)  # a map without its record is never kept
+            t0 = perf_counter()
             depth, _ = teacher.run([images.get(n) for n in views], [sd.Ks[n] for n in views],
-                                   [sd.poses[n] for n in views], *rng)
-            seconds.append(time.perf_counter() - t0)
+                                   [sd.poses[n] for n in views], *sd.selection.references[ref].depth_range)
+            seconds.append(perf_counter() - t0)
             write_depth_map(out, depth)
-            stamp.write_text(json.dumps({"meta": meta}))
+            tl.atomic_json(stamp, {"record": json.loads(record)})
         m = evaluate_depth(EvaluateDepthConfig(workspace_path=ws, gt=a.data / "depth", gt_scale=0.001,
-                                               kind="photometric", images=tuple(refs),
+                                               kind="photometric", images=tuple(sources),
                                                output_path=ws / "metrics.photometric.json"))
         s = m.pooled
         under = " / ".join(f"{s.rel_under_pct[t]:.1f}" for t in sorted(s.rel_under_pct))
-        speed = f", {np.mean(seconds):.2f} s per image" if seconds else ""
-        print(f"{key} N={a.num_views} offset {a.offset}: {len(refs)} refs, coverage {s.coverage_pct:.1f} %, "
-              f"MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, % under {sorted(s.rel_under_pct)}: "
-              f"{under}{speed}", flush=True)
+        speed = f", {np.mean(seconds[1:] or seconds):.2f} s per image" if seconds else ""
+        print(f"{key} N={a.num_views} offset {a.offset}: {len(sources)} refs, "
+              f"coverage {s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, "
+              f"% under {sorted(s.rel_under_pct)}: {under}{speed}", flush=True)
     return 0
 
 

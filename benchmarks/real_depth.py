@@ -102,8 +102,8 @@ def quick_model(args: argparse.Namespace) -> tuple[Path, Path] | None:
 
 def quick_sources(names: list[str], selection, args: argparse.Namespace) -> dict[str, list[str]]:
     """The evaluated references of ``names`` (every ``args.stride``-th from ``args.offset``, if the
-    :class:`~colmap_pvs.views.ViewSelection` ``selection`` made them references) and their top
-    ``args.num_views - 1`` sources by view score."""
+    :class:`~colmap_pvs.views.ViewSelection` ``selection`` made them references) and the first
+    ``args.num_views - 1`` of each one's ranked sources (the view selection's own choice)."""
     refs = [n for n in sorted(names)[args.offset :: args.stride] if n in selection.references]
     return {r: list(selection.references[r].ranked_names)[: args.num_views - 1] for r in refs}
 
@@ -133,18 +133,24 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     return model_dir
 
 
-def add_quick_args(p: argparse.ArgumentParser, tag: str, tag_help: str, stride: int) -> None:
-    """The arguments of a ``WORK/quick/TAG_clean`` workspace (``hololens_quick.py`` and
-    ``cloud_benchmark.py``): checkpoint, data, frames, views, threads, resume and stereo overrides."""
-    p.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT)
-    p.add_argument("--tag", default=tag, help=tag_help)
+def add_frame_args(p: argparse.ArgumentParser, stride: int) -> None:
+    """The data, work folder, frames (``--stride``, ``--offset``), ``--num_views`` and ``--threads``
+    arguments that :func:`quick_model` and :func:`quick_sources` read."""
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--work_dir", type=Path, default=DEFAULT_WORK)
     p.add_argument("--stride", type=int, default=stride)
     p.add_argument("--offset", type=int, default=0)
-    p.add_argument("--max_image_size", type=int, default=540)
     p.add_argument("--num_views", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
+
+
+def add_quick_args(p: argparse.ArgumentParser, tag: str, tag_help: str, stride: int) -> None:
+    """The arguments of a ``WORK/quick/TAG_clean`` workspace (``hololens_quick.py`` and
+    ``cloud_benchmark.py``): checkpoint, :func:`add_frame_args`, map size, resume and stereo overrides."""
+    p.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT)
+    p.add_argument("--tag", default=tag, help=tag_help)
+    add_frame_args(p, stride)
+    p.add_argument("--max_image_size", type=int, default=540)
     p.add_argument("--resume", action="store_true", help="keep the tag's maps (the stereo step's resume)")
     p.add_argument("--stereo", nargs="*", default=[], metavar="KEY=VALUE", help="more StereoConfig fields")
 

@@ -35,8 +35,9 @@ folders. Per scene:
    own confidence at full resolution (images resized to the teacher's multiple of 32 / 8 and the
    maps resized back). Raw outputs are cached in ``OUT/<scene>/teacher_cache/<estimate>/NAME.npz``.
 4. Agreement: a pixel is a candidate where at least ``--min_agree`` estimates agree within
-   ``--agree_tol`` relative depth; its depth is the mean of the agreeing estimates. With a single
-   estimate (``--estimates itermvs_blended:0-10 --min_agree 1``) each of its valid pixels is a
+   ``--agree_tol`` relative depth; its depth is the mean of the agreeing estimates (with two or more
+   estimates, at least two must agree whatever ``--min_agree``). With a single estimate
+   (``--estimates itermvs_blended:0-10 --min_agree 1 --num_views 11``) each of its valid pixels is a
    candidate, and only the view check below filters it.
 5. Multi-view consistency: the candidate depth is reprojected into the candidate maps of the
    reference's first ``--check_views`` ranked sources that are references themselves; a view
@@ -98,8 +99,8 @@ DEFAULT_ESTIMATES = "itermvs_dtu:0-4,itermvs_blended:0-4,patchmatchnet:0-4,iterm
 #: Bump when the meaning of the cached teacher outputs changes.
 CACHE_VERSION = 1
 #: Bumped when the rules' code changes the labels for the same settings (2: the view check is the
-#: geometric pass's own, colmap_pvs.consistency).
-LABEL_VERSION = 2
+#: geometric pass's own, colmap_pvs.consistency; 3: a single estimate is its own candidate).
+LABEL_VERSION = 3
 
 
 # --------------------------------------------------------------------------- teachers
