@@ -16,12 +16,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse  # noqa: E402
 import difflib
 import importlib
-import json
 import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 from colmap_pvs import __version__
 from colmap_pvs.cli.colmap_flags import add_colmap_flags, translate_colmap_flags
@@ -31,6 +29,7 @@ from colmap_pvs.config import (
     config_from_dict,
     flags_to_dict,
     merge_configs,
+    read_config_file,
     removed_options,
 )
 from colmap_pvs.errors import ColmapPVSError, ConfigError
@@ -214,7 +213,8 @@ def _add_command_flags(p: argparse.ArgumentParser, cmd: Command, colmap_help: bo
             dest="_config_file",
             default=None,
             metavar="JSON",
-            help="JSON of config values (nested or by flag name; a run's saved config); flags override it",
+            help="JSON of config values (by name or nested; a saved config's \"base\": a file it changes); "
+            "flags override it",
         )
     for name in cmd.positional:  # e.g. `demo [OUT]`; the --flag form keeps working
         p.add_argument(name, nargs="?", default=argparse.SUPPRESS, metavar=name.upper(),
@@ -229,17 +229,8 @@ def _build_config(config_cls: type, args: argparse.Namespace):
     given = {k: v for k, v in vars(args).items() if k in flags}
     if args._config_file is None:
         return config_from_dict(config_cls, given)
-    path = Path(args._config_file)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"cannot read --config_file {str(path)!r}: {exc}") from None
-    if isinstance(data, dict) and "config" in data and "config_class" in data:
-        data = data["config"]
-    if not isinstance(data, dict):
-        raise ConfigError(f"--config_file {str(path)!r} must hold a JSON object")
-    where = f"--config_file {str(path)!r}"
-    data = flags_to_dict(config_cls, data, where=where)
+    where = f"--config_file {str(args._config_file)!r}"
+    data = read_config_file(config_cls, args._config_file, where=where)
     try:
         return config_from_dict(config_cls, merge_configs(data, flags_to_dict(config_cls, given)))
     except ConfigError as exc:

@@ -343,17 +343,43 @@ def save_config(cfg: Any, path: str | os.PathLike, **extra: Any) -> Path:
 
 
 def load_config(cls: type[C], path: str | os.PathLike) -> C:
-    """Load a config saved by :func:`save_config` (or a plain JSON mapping)."""
-    path = Path(path)
+    """Load a config saved by :func:`save_config` (or a plain JSON mapping; see :func:`read_config_file`)."""
+    return config_from_dict(cls, read_config_file(cls, path))
+
+
+def read_config_file(cls: type, path: str | os.PathLike, *, where: str | None = None) -> dict[str, Any]:
+    """The nested values of ``cls`` a JSON config file sets: a mapping (field or flag names, nested
+    or not), or a file of :func:`save_config` whose optional ``"base"`` names, relative to it, a config
+    file it changes (read first, this file's values merged over it), so a recorded variant holds only
+    what differs. ``where`` names the file in errors (default: ``config file 'PATH'``)."""
+    return _read_config_file(cls, Path(path), where, ())
+
+
+def _read_config_file(cls: type, path: Path, where: str | None, chain: tuple[Path, ...]) -> dict[str, Any]:
+    where = where or f"config file {str(path)!r}"
+    if path.resolve() in chain:
+        raise ConfigError(f"{where}: its \"base\" chain comes back to it")
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
-        raise ConfigError(f"config file {str(path)!r} does not exist") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"config file {str(path)!r} is not valid JSON: {exc}") from None
+        raise ConfigError(f"{where} does not exist") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read {where}: {exc}") from None
+    base = None
     if isinstance(data, dict) and "config" in data and "config_class" in data:
+        base = data.get("base")
         data = data["config"]
-    return config_from_dict(cls, data)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where} must hold a JSON object")
+    data = flags_to_dict(cls, data, where=where)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{where}: \"base\" must be a file name, got {base!r}")
+    base_path = path.parent / base
+    chain = (*chain, path.resolve())
+    inherited = _read_config_file(cls, base_path, f"{where}'s base {str(base_path)!r}", chain)
+    return merge_configs(inherited, data)
 
 
 # --------------------------------------------------------------------------- CLI flags

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
 from colmap_pvs.cli.colmap_flags import translate_colmap_flags
 from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
+from colmap_pvs.config import config_to_dict
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.train import TrainConfig
 
@@ -104,3 +106,36 @@ def test_config_file_errors_name_the_file(tmp_path, capsys):
     assert main(["stereo", "--workspace_path", str(tmp_path), "--config_file", str(path)]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(path) in err and "min_consistent" in err
+
+
+def test_a_config_file_changes_its_base_and_flags_change_both(tmp_path):
+    base = tmp_path / "base.json"
+    base.write_text(json.dumps({"config_class": "TrainConfig",
+                                "config": {"steps": 7, "lr": 0.5, "model": {"visibility": False}}}))
+    (tmp_path / "sub").mkdir()
+    variant = tmp_path / "sub" / "variant.json"  # "base" is relative to the file that names it
+    variant.write_text(json.dumps({"base": "../base.json", "config_class": "TrainConfig",
+                                   "config": {"steps": 8, "model": {"truncation": False}}}))
+    cfg = _build_config(TrainConfig, build_parser().parse_args(["train", "--config_file", str(variant),
+                                                                 "--lr", "0.25"]))
+    assert (cfg.steps, cfg.lr, cfg.model.visibility, cfg.model.truncation) == (8, 0.25, False, False)
+    base.write_text(json.dumps({"base": "sub/variant.json", "config_class": "TrainConfig", "config": {}}))
+    with pytest.raises(ConfigError, match="comes back"):
+        _build_config(TrainConfig, build_parser().parse_args(["train", "--config_file", str(variant)]))
+
+
+RECORDED_CONFIGS = sorted((Path(__file__).parents[1] / "benchmarks" / "configs").glob("*.json"))
+
+
+@pytest.mark.parametrize("path", RECORDED_CONFIGS, ids=lambda p: p.name)
+def test_every_recorded_training_config_still_loads(path):
+    def resolved(p):
+        args = build_parser().parse_args(["train", "--config_file", str(p)])
+        return config_to_dict(_build_config(TrainConfig, args))
+
+    cfg = resolved(path)
+    saved = json.loads(path.read_text())
+    if "base" in saved:  # a variant: what it does not set is its base's
+        base = resolved(path.parent / saved["base"])
+        assert [k for k in base if k not in saved["config"] and cfg[k] != base[k]] == []
+        assert cfg != base

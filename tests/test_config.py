@@ -123,3 +123,14 @@ def test_atomic_outputs_are_not_private(tmp_path):
         os.umask(mask)
     assert stat.S_IMODE(f.stat().st_mode) == 0o644
     assert stat.S_IMODE(d.stat().st_mode) == 0o755
+
+
+def test_load_config_reads_a_variant_over_its_base(tmp_path):
+    save_config(Demo(path=Path("p"), count=5, inner=Inner(width=4)), tmp_path / "base.json")
+    (tmp_path / "variant.json").write_text(json.dumps(
+        {"base": "base.json", "config_class": "Demo", "config": {"count": 6}}))
+    assert load_config(Demo, tmp_path / "variant.json") == Demo(path=Path("p"), count=6, inner=Inner(width=4))
+    (tmp_path / "base.json").write_text(json.dumps(
+        {"base": "variant.json", "config_class": "Demo", "config": {}}))
+    with pytest.raises(ConfigError, match="comes back"):
+        load_config(Demo, tmp_path / "variant.json")
