@@ -124,7 +124,9 @@ def test_a_config_file_changes_its_base_and_flags_change_both(tmp_path):
         _build_config(TrainConfig, build_parser().parse_args(["train", "--config_file", str(variant)]))
 
 
-RECORDED_CONFIGS = sorted((Path(__file__).parents[1] / "benchmarks" / "configs").glob("*.json"))
+_ROOT = Path(__file__).parents[1]
+RECORDED_CONFIGS = sorted([*(_ROOT / "benchmarks" / "configs").glob("*.json"),
+                           *(_ROOT / "colmap_pvs" / "weights").glob("*.train_config.json")])
 
 
 @pytest.mark.parametrize("path", RECORDED_CONFIGS, ids=lambda p: p.name)
@@ -139,3 +141,5 @@ def test_every_recorded_training_config_still_loads(path):
         base = resolved(path.parent / saved["base"])
         assert [k for k in base if k not in saved["config"] and cfg[k] != base[k]] == []
         assert cfg != base
+    # the weights a recorded fine-tune starts from are in the repository (paths relative to its root)
+    assert cfg["init_weights"] is None or (_ROOT / cfg["init_weights"]).is_file(), cfg["init_weights"]
