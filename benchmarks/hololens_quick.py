@@ -56,7 +56,7 @@ def main() -> int:
     clean = rd.quick_sources(names, sel, a)
     refs = list(clean)
     if a.all_references:  # every frame a reference; the evaluated ones keep their sources
-        clean = {r: list(sel.references[r].ranked_names)[: a.num_views - 1] for r in sel.references}
+        clean = rd.top_sources(sel, sel.references, a.num_views)
     settings = [("clean", clean)]
     if a.disturbed:
         far = {}

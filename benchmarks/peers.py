@@ -70,18 +70,14 @@ def main() -> int:
     p.add_argument("--teachers", nargs="*", default=kinds, choices=kinds)
     rd.add_frame_args(p, stride=9)
     a = p.parse_args()
-    repos = {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet}
-    for key in a.teachers:
-        if repos[tl.TEACHER_KINDS[key].repo] is None:
-            p.error(f"--teachers {key} needs --{tl.TEACHER_KINDS[key].repo}")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     prepared = rd.quick_model(a)
     if prepared is None:
         return 2
     work, sparse = prepared
     torch.set_num_threads(a.threads)
-    for key in a.teachers:
-        teacher = tl.Teacher(key, repos[tl.TEACHER_KINDS[key].repo])
+    teachers = tl.load_teachers(a.teachers, {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet})
+    for key, teacher in teachers.items():
         ws = rd.make_workspace(work / "quick" / f"peer_{key}_n{a.num_views}_o{a.offset}", a.data / "images",
                                sparse, keep_stereo=True)
         sd = tl.load_scene(ws, 1, config_from_dict(ViewSelectionConfig, {"num_views": a.num_views}))

@@ -105,7 +105,12 @@ def quick_sources(names: list[str], selection, args: argparse.Namespace) -> dict
     :class:`~colmap_pvs.views.ViewSelection` ``selection`` made them references) and the first
     ``args.num_views - 1`` of each one's ranked sources (the view selection's own choice)."""
     refs = [n for n in sorted(names)[args.offset :: args.stride] if n in selection.references]
-    return {r: list(selection.references[r].ranked_names)[: args.num_views - 1] for r in refs}
+    return top_sources(selection, refs, args.num_views)
+
+
+def top_sources(selection, refs, num_views: int) -> dict[str, list[str]]:
+    """Each of ``refs`` with the first ``num_views - 1`` of its ranked sources in ``selection``."""
+    return {r: list(selection.references[r].ranked_names)[: num_views - 1] for r in refs}
 
 
 def build_model(data: Path, work: Path, threads: int) -> Path:

@@ -102,3 +102,12 @@ def test_parse_estimates(tl):
         tl.parse_estimates("nonsense:0-4")
     with pytest.raises(SystemExit):
         tl.parse_estimates("itermvs_dtu:4-2")
+
+
+def test_only_the_clones_the_estimates_use_are_required(tl):
+    args = tl.build_parser().parse_args(["--itermvs", "I", "--scenes", "S", "--out", "O"])
+    assert args.patchmatchnet is None  # a run of IterMVS estimates alone needs no PatchmatchNet clone
+    with pytest.raises(SystemExit, match="need --patchmatchnet$"):
+        tl.load_teachers({"itermvs_blended", "patchmatchnet"}, {"itermvs": "I", "patchmatchnet": None})
+    with pytest.raises(SystemExit, match="need --itermvs and --patchmatchnet"):
+        tl.load_teachers(["itermvs_dtu", "patchmatchnet"], {"itermvs": None, "patchmatchnet": None})

@@ -15,6 +15,9 @@ Usage::
 
     python tools/teacher_labels.py --itermvs /path/IterMVS --patchmatchnet /path/PatchmatchNet \\
         --scenes ../shared/data/real-train --out runs/labels
+    # a single teacher needs only its own clone
+    python tools/teacher_labels.py --itermvs /path/IterMVS --scenes S --out runs/labels_itermvs11 \\
+        --estimates itermvs_blended:0-10 --min_agree 1 --num_views 11
 
     # measure the labels against GT depth (scene = one COLMAP model; every 3rd image as reference)
     python tools/teacher_labels.py --itermvs ... --patchmatchnet ... \\
@@ -264,10 +267,14 @@ class Teacher:
         return depth, np.nan_to_num(conf).astype(np.float32)
 
 
-def load_teachers(args) -> dict[str, Teacher]:
-    needed = {e.split(":")[0] for e in parse_estimates(args.estimates)}
-    repos = {"itermvs": args.itermvs, "patchmatchnet": args.patchmatchnet}
-    return {k: Teacher(k, Path(repos[TEACHER_KINDS[k].repo])) for k in sorted(needed)}
+def load_teachers(keys, repos: dict[str, Path | str | None]) -> dict[str, Teacher]:
+    """One :class:`Teacher` per key of ``keys`` (``TEACHER_KINDS``), each loaded from the clone its kind
+    needs; ``repos`` maps ``"itermvs"`` / ``"patchmatchnet"`` to a clone path or ``None`` (not given)."""
+    missing = sorted({TEACHER_KINDS[k].repo for k in keys if repos.get(TEACHER_KINDS[k].repo) is None})
+    if missing:
+        flags = " and ".join(f"--{r}" for r in missing)
+        raise SystemExit(f"teachers {', '.join(sorted(set(keys)))} need {flags}")
+    return {k: Teacher(k, Path(repos[TEACHER_KINDS[k].repo])) for k in sorted(set(keys))}
 
 
 def parse_estimates(spec: str) -> list[str]:
@@ -740,8 +747,8 @@ def label_scene(scene: Path, args, teachers, estimates, rules: Rules) -> dict:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--itermvs", required=True, help="clone of github.com/FangjinhuaWang/IterMVS")
-    p.add_argument("--patchmatchnet", required=True, help="clone of github.com/FangjinhuaWang/PatchmatchNet")
+    p.add_argument("--itermvs", help="clone of github.com/FangjinhuaWang/IterMVS (for itermvs_*)")
+    p.add_argument("--patchmatchnet", help="clone of github.com/FangjinhuaWang/PatchmatchNet")
     p.add_argument("--scenes", required=True, help="a scene folder or a folder of scene folders")
     p.add_argument("--out", required=True, help="output folder (one dense workspace per scene)")
     p.add_argument("--only", nargs="*", default=None, help="only these scene names")
@@ -772,7 +779,8 @@ def main(argv=None) -> int:
     estimates = parse_estimates(args.estimates)
     rules = Rules(args.agree_tol, args.min_agree, args.use_confidence, args.check_views, args.geo_pixel,
                   args.geo_rel, args.min_consistent)
-    teachers = load_teachers(args)
+    teachers = load_teachers({e.split(":")[0] for e in estimates},
+                             {"itermvs": args.itermvs, "patchmatchnet": args.patchmatchnet})
     scenes = find_scenes(Path(args.scenes))
     if args.only:
         scenes = [s for s in scenes if s.name in set(args.only)]
