@@ -64,8 +64,7 @@ def stored_record(path: Path) -> str | None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--itermvs", type=Path, help="a clone of IterMVS with its checkpoints/ (for itermvs_*)")
-    p.add_argument("--patchmatchnet", type=Path, help="a clone of PatchmatchNet (for patchmatchnet)")
+    tl.add_clone_args(p)
     kinds = sorted(tl.TEACHER_KINDS)
     p.add_argument("--teachers", nargs="*", default=kinds, choices=kinds)
     rd.add_frame_args(p, stride=9)
@@ -76,7 +75,7 @@ def main() -> int:
         return 2
     work, sparse = prepared
     torch.set_num_threads(a.threads)
-    teachers = tl.load_teachers(a.teachers, {"itermvs": a.itermvs, "patchmatchnet": a.patchmatchnet})
+    teachers = tl.load_teachers(a.teachers, tl.clones(a))
     for key, teacher in teachers.items():
         ws = rd.make_workspace(work / "quick" / f"peer_{key}_n{a.num_views}_o{a.offset}", a.data / "images",
                                sparse, keep_stereo=True)

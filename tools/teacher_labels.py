@@ -267,6 +267,24 @@ class Teacher:
         return depth, np.nan_to_num(conf).astype(np.float32)
 
 
+def add_clone_args(p: argparse.ArgumentParser) -> None:
+    """The ``--itermvs`` / ``--patchmatchnet`` clone flags (each needed only by its teachers)."""
+    p.add_argument("--itermvs", type=Path, help="clone of github.com/FangjinhuaWang/IterMVS with its "
+                   "checkpoints/ (for itermvs_*)")
+    p.add_argument("--patchmatchnet", type=Path, help="clone of github.com/FangjinhuaWang/PatchmatchNet "
+                   "(for patchmatchnet)")
+
+
+def clones(args) -> dict[str, Path | None]:
+    """The clone flags of :func:`add_clone_args` as the ``repos`` of :func:`load_teachers`."""
+    return {"itermvs": args.itermvs, "patchmatchnet": args.patchmatchnet}
+
+
+def teacher_of(estimate: str) -> str:
+    """The teacher key of an estimate id ``teacher:first-stop`` (:func:`parse_estimates`)."""
+    return estimate.partition(":")[0]
+
+
 def load_teachers(keys, repos: dict[str, Path | str | None]) -> dict[str, Teacher]:
     """One :class:`Teacher` per key of ``keys`` (``TEACHER_KINDS``), each loaded from the clone its kind
     needs; ``repos`` maps ``"itermvs"`` / ``"patchmatchnet"`` to a clone path or ``None`` (not given)."""
@@ -539,7 +557,7 @@ def candidates(ws: Path, estimates: list[str], name: str, rules: Rules, hw):
         d, c = got
         ok = d > 0
         if rules.use_confidence:
-            ok &= c >= TEACHER_KINDS[est.split(":")[0]].conf_threshold
+            ok &= c >= TEACHER_KINDS[teacher_of(est)].conf_threshold
         ds.append(d)
         vs.append(ok)
     depth, count = agree(np.stack(ds), np.stack(vs), rules.agree_tol)
@@ -645,7 +663,7 @@ def evaluate(sd: SceneData, estimates: list[str], rules: Rules, gt_dir: Path, gt
                 continue
             d, c = got
             add(f"{est} all", d, g)
-            thr = TEACHER_KINDS[est.split(":")[0]].conf_threshold
+            thr = TEACHER_KINDS[teacher_of(est)].conf_threshold
             add(f"{est} conf>={thr}", np.where(c >= thr, d, 0), g)
         for label, r in variants.items():
             cand, _ = candidates(sd.root, estimates, n, r, sd.sizes[n])
@@ -747,8 +765,7 @@ def label_scene(scene: Path, args, teachers, estimates, rules: Rules) -> dict:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--itermvs", help="clone of github.com/FangjinhuaWang/IterMVS (for itermvs_*)")
-    p.add_argument("--patchmatchnet", help="clone of github.com/FangjinhuaWang/PatchmatchNet")
+    add_clone_args(p)
     p.add_argument("--scenes", required=True, help="a scene folder or a folder of scene folders")
     p.add_argument("--out", required=True, help="output folder (one dense workspace per scene)")
     p.add_argument("--only", nargs="*", default=None, help="only these scene names")
@@ -779,8 +796,7 @@ def main(argv=None) -> int:
     estimates = parse_estimates(args.estimates)
     rules = Rules(args.agree_tol, args.min_agree, args.use_confidence, args.check_views, args.geo_pixel,
                   args.geo_rel, args.min_consistent)
-    teachers = load_teachers({e.split(":")[0] for e in estimates},
-                             {"itermvs": args.itermvs, "patchmatchnet": args.patchmatchnet})
+    teachers = load_teachers({teacher_of(e) for e in estimates}, clones(args))
     scenes = find_scenes(Path(args.scenes))
     if args.only:
         scenes = [s for s in scenes if s.name in set(args.only)]
