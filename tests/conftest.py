@@ -15,6 +15,53 @@ REPO_ROOT = TESTS_DIR.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 
+_CRASH_REPORT_FD: int | None = None
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config: pytest.Config) -> None:
+    """A native crash (SIGSEGV, SIGABRT) prints every thread's Python stack, the running test among them.
+
+    pytest's faulthandler plugin writes that report, but importing pycolmap (glog) and starting Ray install
+    their own fatal-signal handlers over it, which write to the captured stderr, lost when the process
+    dies: a crash left no report at all. So pycolmap is imported here, once, and Python's handler is put
+    back on a copy of the real stderr, now and before every test.
+    """
+    global _CRASH_REPORT_FD
+    import os
+
+    import pycolmap  # noqa: F401  (its import replaces the handler)
+
+    _CRASH_REPORT_FD = os.dup(sys.__stderr__.fileno())
+    _restore_crash_report()
+
+
+def _restore_crash_report() -> None:
+    import faulthandler
+
+    if _CRASH_REPORT_FD is not None:
+        faulthandler.disable()
+        faulthandler.enable(file=_CRASH_REPORT_FD, all_threads=True)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_call(item: pytest.Item) -> None:
+    """``ray.init`` (in a fixture or an earlier test) installs its own fatal-signal handlers too: put
+    Python's back before every test."""
+    _restore_crash_report()
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    global _CRASH_REPORT_FD
+    import faulthandler
+    import os
+
+    if _CRASH_REPORT_FD is not None:
+        faulthandler.disable()
+        os.close(_CRASH_REPORT_FD)
+        _CRASH_REPORT_FD = None
+
+
 def load_tool(name: str):
     """The script ``tools/NAME.py`` as a module (``tools/`` is not a package), registered as ``NAME``."""
     import importlib.util
