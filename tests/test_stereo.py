@@ -993,3 +993,32 @@ def test_maps_follow_image_pixels_cameras_and_poses_with_one_line_per_pass(synth
     assert names[2] in res.geometric_processed
     line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("stereo photometric:"))
     assert f"depth range, pose changed: {names[2]}" in line, line
+
+
+def test_num_views_that_patch_match_cfg_overrides_is_said_once_and_recomputes_nothing(
+        synthetic_ws, tmp_path, tiny_checkpoint, caplog):
+    from colmap_pvs.views.step import SelectViewsConfig, run_select_views
+
+    ws = _copy(synthetic_ws, tmp_path)
+    run_select_views(SelectViewsConfig(workspace_path=ws, num_views=2))  # explicit lists of 1 source
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=2, max_image_size=32,
+                        geom_consistency=False)
+    caplog.set_level("WARNING", logger="colmap_pvs")
+    first = run_stereo(cfg)
+    names = sorted(first.processed)
+    assert len(names) == 4 and not [r for r in caplog.records if "decides the sources" in r.getMessage()]
+    caplog.clear()
+    res = run_stereo(replace_config(cfg, num_views=3))
+    assert res.processed == [] and sorted(res.already_done) == names  # the same sources: nothing to redo
+    notes = [r.getMessage() for r in caplog.records if "decides the sources" in r.getMessage()]
+    assert len(notes) == 1 and "patch-match.cfg decides the sources of 4 of 4 reference(s) (1 each), not " \
+        "--num_views 3" in notes[0] and "colmap-pvs select-views" in notes[0] and "--num_views 3" in notes[0]
+    prov = json.loads((ws / "stereo" / "provenance" / f"{names[0]}.photometric.json").read_text())
+    assert "num_views" not in prov["settings"] and len(prov["sources"]) == 1
+    assert prov["sources_from"] == "stereo/patch-match.cfg (its source list)"
+    # __auto__: num_views applies (up to N), and more sources recompute
+    (ws / "stereo" / "patch-match.cfg").write_text("".join(f"{n}\n__auto__, 3\n" for n in names))
+    caplog.clear()
+    res = run_stereo(replace_config(cfg, num_views=3))
+    assert sorted(res.processed) == names and all(len(res.sources[n]) == 2 for n in names)
+    assert not [r for r in caplog.records if "decides the sources" in r.getMessage()]
