@@ -93,6 +93,8 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         why = "--overwrite"
     elif same:
         why = "its geometric maps were rewritten"
+    elif record is None:  # a first run, or new geometric maps (their pass removes the record)
+        why = "its geometric maps are new"
     else:
         why = change_reason(record, settings, "confirm")
     t0 = time.perf_counter()
