@@ -51,7 +51,9 @@ COLMAP's layout (:mod:`colmap_pvs.io.ply`), both written atomically; COLMAP's
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 import shutil
 import time
 from collections import OrderedDict
@@ -67,7 +69,7 @@ from .config import save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.colmap_tools import COLMAP_DEFAULTS, parse_colmap_options
-from .io.files import make_temp_dir
+from .io.files import file_sha256, files_state_sha256, make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair
@@ -85,7 +87,8 @@ from .types import SparseModel
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "parse_colmap_options"]
+__all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "fusion_inputs_sha256",
+           "parse_colmap_options"]
 
 DEFAULT_OUTPUT_NAME = "fused.ply"
 CONFIG_SUFFIX = ".fuse_config.json"
@@ -571,6 +574,19 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
 # --------------------------------------------------------------------------- entry point
 
 
+def fusion_inputs_sha256(workspace_path: str | os.PathLike) -> str:
+    """What ``fuse`` reads from the workspace: the images, the sparse model and the depth, normal and
+    confidence maps by file size and time (:func:`files_state_sha256`), ``stereo/fusion.cfg`` and
+    ``patch-match.cfg`` by content. A cloud whose record holds another value was fused from other maps."""
+    ws = Workspace(Path(workspace_path))
+    files = files_state_sha256([ws.images_dir, ws.sparse_dir, ws.depth_maps_dir, ws.normal_maps_dir,
+                                ws.stereo_dir / "confidence_maps"])
+    digest = hashlib.sha256(files.encode())
+    for cfg in (ws.fusion_cfg, ws.patch_match_cfg):
+        digest.update(file_sha256(cfg).encode() if cfg.is_file() else b"none")
+    return digest.hexdigest()
+
+
 def _set_aside_foreign_cloud(out: Path) -> None:
     """``out`` and its ``.vis`` if COLMAP or the user wrote them (``dense/fused.ply`` is the name of
     COLMAP's own fusion output): moved to ``.bak`` before ours replace them."""
@@ -605,6 +621,7 @@ def fuse(config: FuseConfig) -> FuseResult:
     """
     start = time.perf_counter()
     ws, model = load_workspace(config.workspace_path)
+    inputs_sha256 = fusion_inputs_sha256(ws.root)  # before reading: a map rewritten meanwhile is a change
     out = Path(config.output_path) if config.output_path is not None else ws.root / DEFAULT_OUTPUT_NAME
     remove_orphan_temps(out.parent)  # what a killed run left behind
     result = FuseResult(output_path=out, vis_path=Path(str(out) + ".vis"), method=config.method)
@@ -661,7 +678,8 @@ def fuse(config: FuseConfig) -> FuseResult:
     record_written_output(out, vis_path_of(out))
     result.num_images = len(names)
     result.seconds = time.perf_counter() - start
-    save_config(config, out.with_name(out.stem + CONFIG_SUFFIX), num_points=result.num_points)
+    save_config(config, out.with_name(out.stem + CONFIG_SUFFIX), num_points=result.num_points,
+                inputs_sha256=inputs_sha256)
     logger.info(
         "fusion: %d points from %d images in %.1f s -> %s", result.num_points, len(names), result.seconds, out
     )

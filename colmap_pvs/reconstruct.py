@@ -37,7 +37,7 @@ from .confidence import calibration_path, load_calibration
 from .config import config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
-from .io.files import atomic_write_bytes, file_sha256
+from .io.files import atomic_write_bytes, file_sha256, files_state_sha256
 from .io.images import check_image_file, check_image_format
 from .io.workspace import set_aside_foreign_output
 from .stereo.config import FORMAT_VERSIONS, StereoConfig, map_settings
@@ -193,21 +193,23 @@ class _Progress:
     def done(self, stage: str) -> bool:
         return stage not in self.overwrite and (self.markers / f"{stage}.done").is_file()
 
-    def mark(self, stage: str) -> None:
-        payload = {"stage": stage, "settings": self.settings.get(stage, {})}
+    def mark(self, stage: str, **extra) -> None:
+        """Mark ``stage`` finished, with its settings and ``extra`` (``inputs``: what it read)."""
+        payload = {"stage": stage, "settings": self.settings.get(stage, {}), **extra}
         atomic_write_bytes(self.markers / f"{stage}.done", (json.dumps(payload, indent=1) + "\n").encode())
 
     def unmark(self, *stages: str) -> None:
         for stage in stages:
             (self.markers / f"{stage}.done").unlink(missing_ok=True)
 
-    def recorded(self, stage: str) -> dict | None:
-        """The settings a finished stage recorded; ``None`` when unknown (no marker, or an old one)."""
+    def recorded(self, stage: str, key: str = "settings"):
+        """What a finished stage recorded under ``key`` (its settings, or the ``inputs`` it read);
+        ``None`` when unknown (no marker, or an old one)."""
         try:
             payload = json.loads((self.markers / f"{stage}.done").read_text())
         except (OSError, ValueError):
             return None
-        return payload.get("settings") if isinstance(payload, dict) else None
+        return payload.get(key) if isinstance(payload, dict) else None
 
     def start(self, stage: str) -> None:
         self._stage, self._t = stage, time.perf_counter()
@@ -505,7 +507,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
 def _reconstruct(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, result: ReconstructResult
 ) -> None:
-    from .fusion import FuseConfig, fuse
+    from .fusion import FuseConfig, fuse, fusion_inputs_sha256
     from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
     from .io.sfm import model_counts
     from .io.workspace import UndistortConfig, detect_workspace, undistort
@@ -594,14 +596,21 @@ def _reconstruct(
     if config.stop_after == "stereo":
         return
 
-    if "fusion" not in prog.overwrite and cloud_pair_is_complete(fused):
+    # fusion and mesh follow what they read: a cloud fused from other maps (a `colmap-pvs stereo` run on
+    # dense/ since, say) is fused again, and a mesh of another cloud is meshed again
+    inputs = fusion_inputs_sha256(dense)
+    fused_from = prog.recorded("fusion", "inputs")
+    if "fusion" not in prog.overwrite and cloud_pair_is_complete(fused) and fused_from == inputs:
         prog.skip("fusion", f"{fused} exists")
     else:
+        if "fusion" not in prog.overwrite and cloud_pair_is_complete(fused):
+            logger.info("reconstruct: the depth maps, images or model in %s changed since %s was fused "
+                        "(or it has no record of them): fusing again", dense, fused)
         prog.start("fusion")
         _remove_stale(meshed)
         prog.unmark("mesh")
         fuse(FuseConfig(workspace_path=dense, output_path=fused, method=config.fusion_method))
-        prog.mark("fusion")
+        prog.mark("fusion", inputs=inputs)
         prog.stop()
     result.fused_path = fused
     result.num_fused_points = len(read_point_cloud(fused))
@@ -609,7 +618,8 @@ def _reconstruct(
         return
 
     if config.mesh:
-        if meshed.is_file() and "mesh" not in prog.overwrite:
+        cloud = files_state_sha256([fused])
+        if meshed.is_file() and "mesh" not in prog.overwrite and prog.recorded("mesh", "inputs") == cloud:
             prog.skip("mesh", f"{meshed} exists")
         elif result.num_fused_points < 4:
             logger.warning("reconstruct: the fused cloud has %d points; no mesh", result.num_fused_points)
@@ -623,7 +633,7 @@ def _reconstruct(
                     num_threads=config.num_threads,
                 )
             )
-            prog.mark("mesh")
+            prog.mark("mesh", inputs=cloud)
             prog.stop()
         result.mesh_path = meshed if meshed.is_file() else None
     logger.info(

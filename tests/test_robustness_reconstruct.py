@@ -307,3 +307,28 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
         {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))
     with pytest.raises(ConfigError, match=r"confidence calibration \(sha256 None -> "):
         reconstruct(reconstruct_config(**flags))
+
+
+def test_fusion_and_mesh_follow_the_maps_they_read(analytic_scene, tmp_path, caplog):
+    """Maps made again since the cloud was fused (a `colmap-pvs stereo` on the dense workspace) are
+    fused and meshed again, and the log says why; with nothing changed both resume."""
+    from colmap_pvs.stereo import run_stereo
+
+    ws = analytic_scene["root"]
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
+                 num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    reconstruct(reconstruct_config(**flags))
+    fused = out / "dense" / "fused.ply"
+    assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
+    before = fused.stat().st_mtime_ns
+    st = run_stereo(stereo_config(workspace_path=out / "dense", checkpoint=ckpt, num_views=3,
+                                  max_image_size=64, geom_max_depth_error=0.05))
+    assert st.geometric_processed
+    caplog.set_level("INFO", logger="colmap_pvs")
+    result = reconstruct(reconstruct_config(**flags))
+    assert "stereo" in result.resumed and not {"fusion", "mesh"} & set(result.resumed)
+    assert fused.stat().st_mtime_ns != before
+    assert any("changed since" in r.getMessage() and "fusing again" in r.getMessage() for r in caplog.records)
+    assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)

@@ -930,3 +930,95 @@ def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_chec
     run_stereo(replace_config(cfg, overwrite=True))
     assert not list(maps.rglob("*.bak.bak")) and not any("did not write" in r.getMessage()
                                                           for r in caplog.records)
+
+
+def _edit_model(ws: Path, *, camera_of: str | None = None, pose_of: str | None = None) -> None:
+    """Scale the focal length of ``camera_of``'s camera by 5 %; move ``pose_of``'s camera slightly."""
+    model = read_sparse_model(ws / "sparse")
+    cameras, images = dict(model.cameras), dict(model.images)
+    if camera_of is not None:
+        cam = model.camera_of(model.image_by_name(camera_of))
+        params = cam.params.copy()
+        params[:2] *= 1.05
+        K = cam.K.copy()
+        K[0, 0], K[1, 1] = params[0], params[1]
+        cameras[cam.camera_id] = dataclasses.replace(cam, params=params, K=K)
+    if pose_of is not None:
+        im = model.image_by_name(pose_of)
+        pose = im.cam_from_world.copy()
+        pose[:, 3] += 0.01
+        images[im.image_id] = dataclasses.replace(im, cam_from_world=pose)
+    write_sparse_model(dataclasses.replace(model, cameras=cameras, images=images), ws / "sparse")
+
+
+def test_maps_follow_image_pixels_cameras_and_poses_with_one_line_per_pass(synthetic_ws, tmp_path,
+                                                                           tiny_checkpoint, caplog):
+    ws = _copy(synthetic_ws, tmp_path)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=2, max_image_size=32,
+                        geom_fill=False)
+    first = run_stereo(cfg)
+    names = sorted(first.processed)
+    assert len(names) == 4 and run_stereo(cfg).processed == []
+    # a third of one photo painted over (same size, same name)
+    path = ws / "images" / names[0]
+    image = cv2.imread(str(path))
+    image[:, : image.shape[1] // 3] = (0, 0, 255)
+    cv2.imwrite(str(path), image)
+    caplog.set_level("INFO", logger="colmap_pvs")
+    caplog.clear()
+    res = run_stereo(cfg)
+    users = sorted(n for n in names if names[0] in res.sources[n])  # the references that read it
+    assert sorted(res.processed) == sorted({names[0], *users})
+    assert set(res.processed) <= set(res.geometric_processed)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("stereo photometric:")]
+    assert len(lines) == 1, lines
+    assert f"image pixels changed: {names[0]}" in lines[0]
+    assert "source pixels changed" in lines[0] or not users
+    assert lines[0].endswith(f"{4 - len(res.processed)} already done, 0 skipped")
+    assert any(r.getMessage().startswith(f"stereo geometric: {len(res.geometric_processed)} computed (its "
+                                         f"photometric maps changed: {names[0]}") for r in caplog.records)
+    # a focal length 5 % longer, then a pose moved
+    _edit_model(ws, camera_of=names[1])
+    res = run_stereo(cfg)
+    assert sorted(res.processed) == sorted({names[1], *(n for n in names if names[1] in res.sources[n])})
+    prov = json.loads((ws / "stereo" / "provenance" / f"{names[1]}.photometric.json").read_text())
+    assert prov["settings"]["camera"]["params"][0] == pytest.approx(
+        read_sparse_model(ws / "sparse").camera_of(read_sparse_model(ws / "sparse").image_by_name(
+            names[1])).params[0])
+    assert run_stereo(cfg).processed == []
+    _edit_model(ws, pose_of=names[2])
+    caplog.clear()
+    res = run_stereo(cfg)
+    assert sorted(res.processed) == sorted({names[2], *(n for n in names if names[2] in res.sources[n])})
+    assert names[2] in res.geometric_processed
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("stereo photometric:"))
+    assert f"depth range, pose changed: {names[2]}" in line, line
+
+
+def test_num_views_that_patch_match_cfg_overrides_is_said_once_and_recomputes_nothing(
+        synthetic_ws, tmp_path, tiny_checkpoint, caplog):
+    from colmap_pvs.views.step import SelectViewsConfig, run_select_views
+
+    ws = _copy(synthetic_ws, tmp_path)
+    run_select_views(SelectViewsConfig(workspace_path=ws, num_views=2))  # explicit lists of 1 source
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=2, max_image_size=32,
+                        geom_consistency=False)
+    caplog.set_level("WARNING", logger="colmap_pvs")
+    first = run_stereo(cfg)
+    names = sorted(first.processed)
+    assert len(names) == 4 and not [r for r in caplog.records if "decides the sources" in r.getMessage()]
+    caplog.clear()
+    res = run_stereo(replace_config(cfg, num_views=3))
+    assert res.processed == [] and sorted(res.already_done) == names  # the same sources: nothing to redo
+    notes = [r.getMessage() for r in caplog.records if "decides the sources" in r.getMessage()]
+    assert len(notes) == 1 and "patch-match.cfg decides the sources of 4 of 4 reference(s) (1 each), not " \
+        "--num_views 3" in notes[0] and "colmap-pvs select-views" in notes[0] and "--num_views 3" in notes[0]
+    prov = json.loads((ws / "stereo" / "provenance" / f"{names[0]}.photometric.json").read_text())
+    assert "num_views" not in prov["settings"] and len(prov["sources"]) == 1
+    assert prov["sources_from"] == "stereo/patch-match.cfg (its source list)"
+    # __auto__: num_views applies (up to N), and more sources recompute
+    (ws / "stereo" / "patch-match.cfg").write_text("".join(f"{n}\n__auto__, 3\n" for n in names))
+    caplog.clear()
+    res = run_stereo(replace_config(cfg, num_views=3))
+    assert sorted(res.processed) == names and all(len(res.sources[n]) == 2 for n in names)
+    assert not [r for r in caplog.records if "decides the sources" in r.getMessage()]

@@ -39,6 +39,24 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def files_state_sha256(paths: list[str | Path]) -> str:
+    """sha256 of the name, size and modification time of every file under ``paths`` (files or folders,
+    recursively; a missing path counts as missing): changes whenever one of them is written, added or
+    removed, without reading their content."""
+    digest = hashlib.sha256()
+    for root in map(Path, paths):
+        found = sorted(root.rglob("*")) if root.is_dir() else [root]
+        for path in found:
+            try:
+                st = path.stat()
+            except OSError:
+                digest.update(f"{path}\0missing\n".encode())
+                continue
+            if path.is_file():
+                digest.update(f"{path}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return digest.hexdigest()
+
+
 def current_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

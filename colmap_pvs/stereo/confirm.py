@@ -29,6 +29,7 @@ from .context import RefOutcome, StereoContext
 from .filled import current_geometric_provenance
 from .geometric import load_maps
 from .outputs import (
+    change_reason,
     confirm_map_path,
     confirm_provenance_path,
     fingerprint,
@@ -84,10 +85,18 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     record = read_json(confirm_provenance_path(ws, name))
     geometric_path = ws.depth_map_path(name, "geometric")
     geometric_sha256 = file_sha256(geometric_path)
-    if (not cfg.overwrite and record is not None and record.get("fingerprint") == fingerprint(settings)
-            and confirm_map_path(ws, name).is_file()
+    same = record is not None and record.get("fingerprint") == fingerprint(settings)
+    if (same and confirm_map_path(ws, name).is_file()
             and record.get("geometric_depth_sha256") == geometric_sha256):  # not rewritten since
-        return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
+        if not cfg.overwrite:
+            return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
+        why = "--overwrite"
+    elif same:
+        why = "its geometric maps were rewritten"
+    elif record is None:  # a first run, or new geometric maps (their pass removes the record)
+        why = "its geometric maps are new"
+    else:
+        why = change_reason(record, settings, "confirm")
     t0 = time.perf_counter()
     depth, normals, conf = pure_geometric(ws, name, geometric_sha256)
     ref, fconf = _supported_completion(ctx, name)
@@ -123,4 +132,4 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         "fingerprint": fingerprint(settings), "geometric": geo["fingerprint"], "settings": settings,
         "geometric_depth_sha256": file_sha256(geometric_path), "added_fraction": float(added.mean())})
     timings["writes"] = time.perf_counter() - t0
-    return RefOutcome(name, "confirm", "computed", seconds=time.perf_counter() - start, timings=timings)
+    return RefOutcome(name, "confirm", "computed", why, seconds=time.perf_counter() - start, timings=timings)

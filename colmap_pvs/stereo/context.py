@@ -3,6 +3,7 @@ cache (:func:`prepare_stereo`), and what each pass reports (:class:`RefOutcome`,
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 from collections import OrderedDict
@@ -90,6 +91,21 @@ def choose_references(ws: Workspace, model: SparseModel) -> dict[str, object]:
     return {img.name: None for img in sorted(model.images.values(), key=lambda im: im.name)}
 
 
+def patch_match_note(ws: Workspace, references: dict[str, object], num_views: int) -> str | None:
+    """The warning to give once per run when ``stereo/patch-match.cfg`` decides how many sources some
+    references get, not ``num_views`` (an explicit list of another length, or ``__auto__, N`` with
+    ``N < num_views - 1``); ``None`` when ``num_views`` applies to every reference."""
+    wanted = num_views - 1
+    counts = [spec.num for spec in references.values() if spec is not None and (
+        (spec.mode == "explicit" and spec.num != wanted) or (spec.mode == "auto" and spec.num < wanted))]
+    if not counts:
+        return None
+    each = f"{counts[0]} each" if min(counts) == max(counts) else f"{min(counts)}-{max(counts)} each"
+    return (f"{ws.patch_match_cfg} decides the sources of {len(counts)} of {len(references)} reference(s) "
+            f"({each}), not --num_views {num_views}; to use {num_views} views rerun `colmap-pvs select-views "
+            f"--workspace_path {ws.root} --num_views {num_views}`, or edit or remove that file")
+
+
 def image_sparse_depth(
     model: SparseModel,
     image: Image,
@@ -110,6 +126,11 @@ def image_sparse_depth(
     rows = order[pos]
     rows = rows[ids[rows] == image.point3D_ids]
     return sparse_depth_map(model.points.xyz[rows], K, image.cam_from_world, height, width)
+
+
+#: Decimals of the camera parameters and poses in the provenance: what a model written again (its
+#: rotations through quaternions) changes in the last bits is no change.
+RECORD_DECIMALS = 9
 
 
 #: Sparse hints farther than this factor outside the image's depth range are outliers.
@@ -221,6 +242,45 @@ class StereoContext:
     writer: ThreadPoolExecutor | None = None
     pending_writes: list[Future] = field(default_factory=list)
     seed_cache: OrderedDict = field(default_factory=OrderedDict)  # name -> (fingerprint, Checked)
+    image_hashes: dict[str, str] = field(default_factory=dict)  # name -> sha256 of its file, once a run
+    _hash_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def image_sha256(self, name: str) -> str:
+        """sha256 of image ``name``'s file (hashed once per run; the photometric provenance records it)."""
+        with self._hash_lock:
+            found = self.image_hashes.get(name)
+        if found is None:
+            path = self.workspace.images_dir / name
+            try:
+                found = file_sha256(path)
+            except OSError as exc:
+                raise WorkspaceError(f"cannot read image {str(path)!r}: {exc}") from None
+            with self._hash_lock:
+                self.image_hashes[name] = found
+        return found
+
+    def camera_record(self, name: str) -> dict:
+        """Image ``name``'s camera as the provenance records it: model, size and parameters (to
+        :data:`RECORD_DECIMALS`: a model written again, with its poses through quaternions, is the same)."""
+        cam = self.sparse.camera_of(self.sparse.image_by_name(name))
+        return {"model": cam.model, "size": [int(cam.width), int(cam.height)],
+                "params": [round(float(v), RECORD_DECIMALS) for v in np.asarray(cam.params).ravel()]}
+
+    def pose_record(self, name: str) -> list[float]:
+        """Image ``name``'s ``cam_from_world`` ``[R | t]``, row by row, to :data:`RECORD_DECIMALS`."""
+        pose = np.asarray(self.sparse.image_by_name(name).cam_from_world).ravel()
+        return [round(float(v), RECORD_DECIMALS) + 0.0 for v in pose]  # + 0.0: no -0.0
+
+    def sparse_points_sha256(self, name: str) -> str:
+        """sha256 of the ids and positions of the sparse points image ``name`` observes (its hints)."""
+        image = self.sparse.image_by_name(name)
+        ids = self.sparse.points.ids
+        pos = np.searchsorted(ids, image.point3D_ids, sorter=self.id_order).clip(max=max(len(ids) - 1, 0))
+        rows = self.id_order[pos] if len(ids) else pos
+        rows = rows[ids[rows] == image.point3D_ids] if len(ids) else rows[:0]
+        digest = hashlib.sha256(np.ascontiguousarray(ids[rows], dtype=np.int64).tobytes())
+        digest.update(np.ascontiguousarray(self.sparse.points.xyz[rows], dtype=np.float64).tobytes())
+        return digest.hexdigest()
 
     def sources_of(self, name: str) -> tuple[list[str] | None, str]:
         """The sources of reference ``name``, or ``(None, reason)`` when it must be skipped."""
@@ -234,6 +294,14 @@ class StereoContext:
             return None, (f"only {len(sources)} source view(s) share points with it "
                           f"(need {self.config.min_sources})")
         return sources, ""
+
+    def sources_origin(self, name: str) -> str:
+        """What decided the sources of ``name``: its ``patch-match.cfg`` entry or the view selection."""
+        spec = self.references.get(name)
+        if spec is None:
+            return f"view selection (num_views {self.config.photometric.num_views})"
+        entry = {"explicit": "its source list", "auto": f"__auto__, {spec.num}", "all": "__all__"}[spec.mode]
+        return f"stereo/patch-match.cfg ({entry})"
 
     def map_size(self, name: str) -> tuple[int, int]:
         """``(W, H)`` of ``name``'s maps at this run's ``max_image_size``."""

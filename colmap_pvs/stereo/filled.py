@@ -26,7 +26,6 @@ from .geometric import load_maps
 from .outputs import (
     fingerprint,
     geometric_files_exist,
-    is_current,
     photometric_settings,
     pure_geometric,
     read_confidence,
@@ -34,6 +33,7 @@ from .outputs import (
     remove_filled,
     seed_map_path,
     stage_settings,
+    stale_reason,
     write_filled,
     write_missing_previews,
 )
@@ -88,7 +88,8 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     settings.update(reference=prov["fingerprint"],
                     sources={s: p["fingerprint"] for s, p in source_prov.items()})
     size = tuple(prov.get("image_size", ctx.map_size(name)))
-    if not cfg.overwrite and is_current(ws, name, "filled", fingerprint(settings), size):
+    why = stale_reason(ws, name, "filled", settings, size, cfg.overwrite)
+    if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
             write_missing_previews(ws, name, "filled", entry.depth_range if entry is not None else None)
         return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
@@ -146,4 +147,4 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
              "unsupported_fraction": float(unsupported.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
     ctx.submit_write(write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
-    return RefOutcome(name, "filled", "computed", seconds=time.perf_counter() - start, timings=timings)
+    return RefOutcome(name, "filled", "computed", why, seconds=time.perf_counter() - start, timings=timings)

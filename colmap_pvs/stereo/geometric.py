@@ -34,12 +34,12 @@ from .context import RefOutcome, StereoContext
 from .outputs import (
     fingerprint,
     geometric_files_exist,
-    is_current,
     read_provenance,
     read_visibility,
     seed_map_path,
     seed_provenance_path,
     stage_settings,
+    stale_reason,
     write_missing_previews,
     write_pass,
     write_seeds,
@@ -302,8 +302,10 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
                 splat_sources[s] = found
         settings["splat_seeds"] = {s: fingerprint(found.settings) for s, found in splat_sources.items()}
     size = tuple(prov.get("image_size", ctx.map_size(name)))
-    if (not cfg.overwrite and is_current(ws, name, "geometric", fingerprint(settings), size)
-            and geometric_files_exist(ws, name)):
+    why = stale_reason(ws, name, "geometric", settings, size, cfg.overwrite)
+    if why is None and not geometric_files_exist(ws, name):
+        why = "seed map missing"
+    if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
             write_missing_previews(ws, name, "geometric", entry.depth_range if entry is not None else None)
         return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
@@ -385,4 +387,5 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     _remember_seeds(ctx, name, seed_fingerprint, Checked(seeds))  # its own pass reruns its own check
     ctx.submit_write(write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
                      dr, timings, None, (), seeds, seed_fingerprint)
-    return RefOutcome(name, "geometric", "computed", seconds=time.perf_counter() - start, timings=timings)
+    return RefOutcome(name, "geometric", "computed", why, seconds=time.perf_counter() - start,
+                      timings=timings)

@@ -17,10 +17,10 @@ from ..io.cleanup import remove_orphan_temps
 from ..io.workspace import write_fusion_cfg
 from .config import CONFIG_FILENAME, Stage, StereoConfig
 from .confirm import confirm_pass
-from .context import RefOutcome, StereoContext, StereoResult, prepare_stereo
+from .context import RefOutcome, StereoContext, StereoResult, patch_match_note, prepare_stereo
 from .filled import filled_pass
 from .geometric import geometric_pass
-from .outputs import remove_filled
+from .outputs import pass_summary, remove_filled
 from .photometric import photometric_pass
 
 logger = logging.getLogger(__name__)
@@ -87,6 +87,7 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
             processed.append(name)
     ctx.flush()
     result.pass_seconds[stage] = time.perf_counter() - t_pass
+    logger.info("stereo %s", pass_summary(stage, outcomes))
 
 
 def final_kind(config: StereoConfig) -> Stage:
@@ -107,6 +108,9 @@ def run_local(config: StereoConfig) -> StereoResult:
     result.timings["prepare"] = t_prepare
     outcomes: list[RefOutcome] = []
     names = list(ctx.references)
+    note = patch_match_note(ws, ctx.references, config.photometric.num_views)
+    if note is not None:
+        logger.warning("stereo: %s", note)
     result.auxiliary = auxiliary_references(ctx) if config.geometric.enabled else []
     work = names + result.auxiliary
     try:
@@ -134,6 +138,7 @@ def run_local(config: StereoConfig) -> StereoResult:
                 result.sources[name] = sources
         ctx.flush()
         result.pass_seconds["photometric"] = time.perf_counter() - t_pass
+        logger.info("stereo %s", pass_summary("photometric", outcomes))
         if config.geometric.enabled:
             _run_later_pass(ctx, names, "geometric", result, outcomes, set(result.skipped))
         if config.geometric.enabled and config.completion.enabled:
@@ -164,11 +169,5 @@ def run_local(config: StereoConfig) -> StereoResult:
     total = time.perf_counter() - wall
     result.pass_seconds["total"] = total
     result.seconds_per_image = total / computed if computed else 0.0
-    logger.info(
-        "stereo: photometric %d computed, %d already done, %d skipped; geometric %d computed, %d done, "
-        "%d skipped; %.2f s/image",
-        len(result.processed), len(result.already_done), len(result.skipped),
-        len(result.geometric_processed), len(result.geometric_done), len(result.geometric_skipped),
-        result.seconds_per_image,
-    )
+    logger.info("stereo: finished in %.1f s, %.2f s per computed image", total, result.seconds_per_image)
     return result

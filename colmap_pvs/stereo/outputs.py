@@ -89,13 +89,105 @@ def stage_settings(ctx: StereoContext, stage: Stage, section: str, *, seeds: boo
 
 
 def photometric_settings(ctx: StereoContext, name: str, sources: list[str]) -> dict:
-    """The resolved settings that determine ``name``'s photometric maps."""
+    """The resolved settings and inputs that determine ``name``'s photometric maps: the pass's settings
+    (but ``num_views``: the ``sources`` it picked are recorded, and ``patch-match.cfg`` may pick them
+    instead), the checkpoint, the depth range, the sha256 of the reference's and each source's image
+    file, their cameras (model, size, parameters) and poses, and the reference's sparse points (its
+    hints)."""
     s = stage_settings(ctx, "photometric", "photometric")
+    s.pop("num_views", None)
     entry = ctx.selection.references[name]
     s.update(checkpoint_sha256=ctx.checkpoint_sha256, sources=list(sources),
-             depth_range=[float(entry.depth_range[0]), float(entry.depth_range[1])],
-             model_config=config_to_dict(ctx.net.config))
+             depth_range=[float(f"{entry.depth_range[0]:.9g}"), float(f"{entry.depth_range[1]:.9g}")],
+             model_config=config_to_dict(ctx.net.config),
+             image_sha256=ctx.image_sha256(name), camera=ctx.camera_record(name), pose=ctx.pose_record(name),
+             sparse_points=ctx.sparse_points_sha256(name),
+             source_image_sha256={s: ctx.image_sha256(s) for s in sources},
+             source_cameras={s: ctx.camera_record(s) for s in sources},
+             source_poses={s: ctx.pose_record(s) for s in sources})
     return s
+
+
+#: A recorded key that changed, in words (:func:`change_reason`); a key not listed is a setting,
+#: ``settings KEY``. ``reference`` and ``sources`` of the later passes: the maps they read.
+CHANGE_WORDS = {
+    "image_sha256": "image pixels", "source_image_sha256": "source pixels", "camera": "camera",
+    "source_cameras": "source camera", "pose": "pose", "source_poses": "source pose",
+    "sparse_points": "sparse points", "depth_range": "depth range", "sources": "sources",
+    "checkpoint_sha256": "checkpoint", "model_config": "checkpoint", "format_version": "map format",
+    "confidence_calibration": "confidence calibration", "splat_seeds": "source seeds",
+}
+#: What the ``reference`` / ``sources`` fingerprints of a later pass's provenance stand for.
+_READS = {"geometric": "photometric maps", "filled": "geometric maps", "confirm": "completion"}
+
+
+def change_reason(old: dict | None, new: dict, stage: Stage) -> str:
+    """Why a pass is recomputed, in words, from its old provenance ``old`` (``None``: none) and the
+    settings ``new`` it is made with now: ``"image pixels, camera changed"``, ``"new"``, ..."""
+    if old is None:
+        return "new"
+    before = old.get("settings")
+    if not isinstance(before, dict):
+        return "no readable record"
+    words: list[str] = []
+    older = False
+    for key in sorted(set(new) | set(before)):
+        if before.get(key) == new.get(key):
+            continue
+        if key not in before or key not in new:
+            older = True
+            continue
+        if key == "reference" and stage in _READS:
+            word = f"its {_READS[stage]}"
+        elif key == "sources" and stage in _READS and isinstance(new[key], dict):
+            same = isinstance(before[key], dict) and set(before[key]) == set(new[key])
+            word = f"sources' {_READS[stage]}" if same else "sources"
+        elif key in ("geometric", "filled") and stage == "confirm":
+            word = f"its {'geometric maps' if key == 'geometric' else 'completion'}"
+        else:
+            word = CHANGE_WORDS.get(key, f"settings {key}")
+        if word not in words:
+            words.append(word)
+    if "sources" in words:  # other sources: their pixels, cameras and poses differ too
+        words = [w for w in words if w not in ("source pixels", "source camera", "source pose")]
+    if stage in _READS:  # the maps it reads: the nearest change only (the others follow from it)
+        chain = [f"its {_READS[stage]}", f"sources' {_READS[stage]}", "source seeds"]
+        first = next((w for w in chain if w in words), None)
+        words = [w for w in words if w not in chain or w == first]
+    if words:
+        return ", ".join(words) + " changed"
+    return "recorded by an older colmap-pvs" if older else "maps missing or unreadable"
+
+
+def stale_reason(ws: Workspace, name: str, stage: Stage, settings: dict, size: tuple[int, int],
+                 overwrite: bool = False) -> str | None:
+    """``None`` when the pass's maps of ``name`` are current (:func:`is_current`), else why not in
+    words (:func:`change_reason`; ``"--overwrite"``)."""
+    if is_current(ws, name, stage, fingerprint(settings), size):
+        return "--overwrite" if overwrite else None
+    return change_reason(read_provenance(ws, name, stage), settings, stage)
+
+
+def pass_summary(stage: str, outcomes, limit: int = 3) -> str:
+    """One line on one pass of a run: ``photometric: 2 computed (image pixels changed: a.jpg; camera
+    changed: b.jpg), 1 already done, 0 skipped``; the references of each reason (the ``reason`` of a
+    computed :class:`~colmap_pvs.stereo.context.RefOutcome`) and the reasons themselves are cut at
+    ``limit`` (``and N more``)."""
+    outs = [o for o in outcomes if o.stage == stage]
+    computed = [o for o in outs if o.status == "computed"]
+    by_reason: dict[str, list[str]] = {}
+    for o in computed:
+        by_reason.setdefault(o.reason or "not recorded", []).append(o.name)
+
+    def cut(items: list[str], sep: str) -> str:
+        more = f" and {len(items) - limit} more" if len(items) > limit else ""
+        return sep.join(items[:limit]) + more
+
+    parts = [f"{why}: {cut(names, ', ')}" for why, names in by_reason.items()]
+    detail = f" ({cut(parts, '; ')})" if parts else ""
+    done = sum(o.status == "done" for o in outs)
+    skipped = sum(o.status == "skipped" for o in outs)
+    return f"{stage}: {len(computed)} computed{detail}, {done} already done, {skipped} skipped"
 
 
 def read_json(path: Path) -> dict | None:

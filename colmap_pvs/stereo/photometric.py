@@ -31,7 +31,7 @@ from ..upsampling import (
 from .config import PRIOR_BLEND_WINDOW
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
-from .outputs import fingerprint, is_current, photometric_settings, write_missing_previews, write_pass
+from .outputs import photometric_settings, stale_reason, write_missing_previews, write_pass
 
 logger = logging.getLogger(__name__)
 
@@ -139,7 +139,8 @@ def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         return RefOutcome(name, "photometric", "skipped", reason)
     size = ctx.map_size(name)
     settings = photometric_settings(ctx, name, sources)
-    if not cfg.overwrite and is_current(ws, name, "photometric", fingerprint(settings), size):
+    why = stale_reason(ws, name, "photometric", settings, size, cfg.overwrite)
+    if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
             write_missing_previews(ws, name, "photometric", ctx.selection.references[name].depth_range)
         return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
@@ -147,7 +148,8 @@ def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if isinstance(maps, str):
         return RefOutcome(name, "photometric", "skipped", maps)
     entry = ctx.selection.references[name]
-    extra = {"image_size": list(size), "sources": sources}
+    extra = {"image_size": list(size), "sources": sources, "sources_from": ctx.sources_origin(name)}
     ctx.submit_write(write_pass, ws, name, "photometric", maps.depth, maps.normals, maps.confidence,
                      settings, extra, cfg.previews, entry.depth_range, timings, maps.visibility, sources)
-    return RefOutcome(name, "photometric", "computed", seconds=time.perf_counter() - start, timings=timings)
+    return RefOutcome(name, "photometric", "computed", why, seconds=time.perf_counter() - start,
+                      timings=timings)

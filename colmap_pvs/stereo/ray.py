@@ -47,9 +47,9 @@ from ..io.cleanup import remove_orphan_temps
 from ..io.workspace import Workspace, write_fusion_cfg
 from ..views import reference_sources
 from .config import CONFIG_FILENAME, StereoConfig
-from .context import RefOutcome, StereoResult, prepare_stereo
+from .context import RefOutcome, StereoResult, patch_match_note, prepare_stereo
 from .local import auxiliary_references, process_reference
-from .outputs import remove_filled
+from .outputs import pass_summary, remove_filled
 
 logger = logging.getLogger(__name__)
 
@@ -223,6 +223,8 @@ class StereoWorker:
             "checkpoint": str(ctx.checkpoint_path),
             "checkpoint_sha256": ctx.checkpoint_sha256,
             "model_config": ctx.net.config,
+            "patch_match_note": patch_match_note(ctx.workspace, ctx.references,
+                                                 ctx.config.photometric.num_views),
         }
 
     def process(self, name: str, stage: str):
@@ -536,6 +538,8 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
                     checkpoint_sha256=plan["checkpoint_sha256"], model_config=plan["model_config"])
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
+        if plan.get("patch_match_note"):
+            logger.warning("stereo: %s", plan["patch_match_note"])
         graph = run_task_graph(config, passes, plan)
         outcomes: dict[Task, object] = {}
         bar = tqdm(total=len(graph.tasks), desc=f"stereo on Ray ({'+'.join(passes)})", unit="task")
@@ -550,6 +554,8 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
             out = outcomes.get((name, "filled"))
             if "filled" not in passes or out is None or out.status == "skipped":
                 remove_filled(ws, name)
+        for stage in passes:
+            logger.info("stereo %s", pass_summary(stage, outcomes.values()))
         result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}
         result.workers = len(driver.info)
