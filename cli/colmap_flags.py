@@ -3,8 +3,9 @@
 A script that runs ``colmap patch_match_stereo --workspace_path dense --workspace_format COLMAP
 --PatchMatchStereo.geom_consistency true`` keeps working after swapping the binary for
 ``colmap-pvs``. Flags with a meaning here are translated to :class:`colmap_pvs.stereo.StereoConfig`
-fields; flags of COLMAP's patch-match optimiser (window, NCC, filtering, ...) have no meaning for a
-learned network and are named in one warning, never dropped silently.
+fields (the fixed depth range, the geometric filter's thresholds, ...); flags of COLMAP's patch-match
+optimiser (window, NCC, sampling, ...) have no meaning for a learned network and are named in one
+warning, never dropped silently.
 """
 
 from __future__ import annotations
@@ -29,6 +30,13 @@ def _int(flag: str, text: str) -> int:
         raise ConfigError(f"--{flag}: expected an integer, got {text!r}") from None
 
 
+def _float(flag: str, text: str) -> float:
+    try:
+        return float(str(text).strip())
+    except ValueError:
+        raise ConfigError(f"--{flag}: expected a number, got {text!r}") from None
+
+
 def _bool(flag: str, text: str) -> bool:
     try:
         return parse_bool(text)
@@ -44,6 +52,40 @@ def _max_image_size(flag: str, text: str) -> dict[str, Any]:
 def _geom_consistency(flag: str, text: str) -> dict[str, Any]:
     """= --geom_consistency"""
     return {"geom_consistency": _bool(flag, text)}
+
+
+def _min_num_consistent(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_min_consistent"""
+    return {"geom_min_consistent": _int(flag, text)}
+
+
+def _min_triangulation_angle(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_min_triangulation_angle"""
+    return {"geom_min_triangulation_angle": _float(flag, text)}
+
+
+def _geom_max_cost(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_max_reproj_error (the forward-backward reprojection error in px)"""
+    return {"geom_max_reproj_error": _float(flag, text)}
+
+
+def _depth_bound(flag: str, text: str) -> dict[str, Any]:
+    """with the other bound, = --depth_range MIN MAX (COLMAP's -1, from the sparse points, is our default)"""
+    return {}  # the pair is translated together, by translate_colmap_flags
+
+
+def _depth_range(given: dict[str, str]) -> dict[str, Any]:
+    """``--depth_range`` from COLMAP's ``depth_min``/``depth_max``: COLMAP uses a fixed range only when
+    both are >= 0; a negative one (its default, -1) keeps the ranges from the sparse points."""
+    names = [f"PatchMatchStereo.depth_{k}" for k in ("min", "max")]
+    bounds = {n: _float(n, given[n]) for n in names if n in given}
+    if not bounds or any(v < 0 for v in bounds.values()):
+        return {}
+    if len(bounds) == 1:
+        (flag, value), = bounds.items()
+        other = next(n for n in names if n != flag)
+        raise ConfigError(f"--{flag} {value:g} needs --{other} too: a fixed depth range takes both bounds")
+    return {"depth_range": (bounds[names[0]], bounds[names[1]])}
 
 
 def _num_threads(flag: str, text: str) -> dict[str, Any]:
@@ -100,15 +142,21 @@ PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None]
     "PatchMatchStereo.geom_consistency": _geom_consistency,
     "PatchMatchStereo.num_threads": _num_threads,
     "PatchMatchStereo.gpu_index": _gpu_index,
+    "PatchMatchStereo.depth_min": _depth_bound,
+    "PatchMatchStereo.depth_max": _depth_bound,
+    "PatchMatchStereo.filter_min_num_consistent": _min_num_consistent,
+    "PatchMatchStereo.filter_min_triangulation_angle": _min_triangulation_angle,
+    "PatchMatchStereo.filter_geom_consistency_max_cost": _geom_max_cost,
+    # COLMAP's patch-match optimiser and its photometric filter: nothing in a learned network matches
+    # them (its own min_triangulation_angle weights sources while sampling; filter, filter_min_ncc and
+    # geom_consistency_max_cost act on its NCC costs)
     **{
         f"PatchMatchStereo.{name}": None
         for name in (
-            "depth_min", "depth_max", "window_radius", "window_step", "sigma_spatial", "sigma_color",
+            "window_radius", "window_step", "sigma_spatial", "sigma_color",
             "num_samples", "ncc_sigma", "min_triangulation_angle", "incident_angle_sigma",
             "num_iterations", "geom_consistency_regularizer", "geom_consistency_max_cost", "filter",
-            "filter_min_ncc", "filter_min_triangulation_angle", "filter_min_num_consistent",
-            "filter_geom_consistency_max_cost", "cache_size", "allow_missing_files",
-            "write_consistency_graph",
+            "filter_min_ncc", "cache_size", "allow_missing_files", "write_consistency_graph",
         )
     },
 }
@@ -133,6 +181,16 @@ def add_colmap_flags(parser: argparse.ArgumentParser, listed: bool = True) -> No
                            help=help_text)
 
 
+def _same(own: Any, value: Any) -> bool:
+    """Whether our flag's value (as parsed: text for a list) equals a translated value."""
+    if isinstance(value, tuple):
+        try:
+            return tuple(float(v) for v in own) == value
+        except (TypeError, ValueError):
+            return False
+    return own == value
+
+
 def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
     """StereoConfig values from the COLMAP flags in ``args``; warns naming the ignored ones.
 
@@ -141,17 +199,21 @@ def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
             flag for the same setting.
     """
     given = {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST)}
-    values: dict[str, Any] = {}
+    translated: list[tuple[str, dict[str, Any]]] = []
     ignored = []
     for flag, text in given.items():
         translate = PATCH_MATCH_STEREO_FLAGS[flag]
         if translate is None:
             ignored.append(f"--{flag}")
-            continue
-        for key, value in translate(flag, text).items():
+        else:
+            translated.append((f"{flag} {text}", translate(flag, text)))
+    translated.append(("PatchMatchStereo.depth_min/depth_max", _depth_range(given)))
+    values: dict[str, Any] = {}
+    for given_as, items in translated:
+        for key, value in items.items():
             own = getattr(args, key, None)
-            if hasattr(args, key) and own != value:
-                raise ConfigError(f"--{flag} {text} contradicts --{key} {own}; give only one of them")
+            if hasattr(args, key) and not _same(own, value):
+                raise ConfigError(f"--{given_as} contradicts --{key} {own}; give only one of them")
             values[key] = value
     if ignored:
         logger.warning("ignored COLMAP flag(s) without a meaning for colmap-pvs: %s", ", ".join(ignored))

@@ -930,3 +930,11 @@ def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_chec
     run_stereo(replace_config(cfg, overwrite=True))
     assert not list(maps.rglob("*.bak.bak")) and not any("did not write" in r.getMessage()
                                                           for r in caplog.records)
+
+
+def test_a_fixed_depth_range_is_every_references_range(synthetic_ws, tiny_checkpoint):
+    """``--depth_range`` (COLMAP's depth_min/depth_max) replaces each reference's range from its points."""
+    ctx = stereo_context.prepare_stereo(stereo_config(workspace_path=synthetic_ws, checkpoint=tiny_checkpoint,
+                                                      depth_range=[0.5, 9]))
+    assert ctx.selection.references
+    assert {entry.depth_range for entry in ctx.selection.references.values()} == {(0.5, 9.0)}
