@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Literal
 
 from .confidence import calibration_path, load_calibration
-from .config import config_to_dict, replace_config, save_config
+from .config import check_threads, config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256
@@ -128,8 +128,7 @@ class ReconstructConfig:
             raise ConfigError(f"sift_peak_threshold must be in (0, 1), got {self.sift_peak_threshold}")
         if self.exhaustive_max_images < 2:
             raise ConfigError(f"exhaustive_max_images must be >= 2, got {self.exhaustive_max_images}")
-        if self.num_threads == 0 or self.num_threads < -1:
-            raise ConfigError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        check_threads("num_threads", self.num_threads, auto=-1)
         if not 1 <= self.mesh_depth <= 16:
             raise ConfigError(f"mesh_depth must be in [1, 16], got {self.mesh_depth}")
 

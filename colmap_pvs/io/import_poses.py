@@ -68,7 +68,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import config_to_dict, save_config
+from ..config import check_threads, config_to_dict, save_config
 from ..errors import ConfigError, WorkspaceError
 from .features import extract_features, match_features, resolve_matcher
 from .files import make_temp_dir
@@ -154,6 +154,7 @@ class ImportPosesConfig:
     )
 
     def __post_init__(self) -> None:
+        check_threads("num_threads", self.num_threads, auto=-1)
         if self.frame_step < 1:
             raise ConfigError(f"frame_step must be >= 1, got {self.frame_step}")
         if self.max_images < 0:
