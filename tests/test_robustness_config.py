@@ -55,7 +55,8 @@ def test_stereo_cli_refuses_bad_values(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     "argv",
-    [["stereo", "--workspace_path", "w", "--threads"], ["stereo", "--workspace_path", "w", "--ray_worker_threads"],
+    [["stereo", "--workspace_path", "w", "--threads"],
+     ["stereo", "--workspace_path", "w", "--ray_worker_threads"],
      ["patch_match_stereo", "--workspace_path", "w", "--PatchMatchStereo.num_threads"],
      ["mesh", "--input_path", "c.ply", "--num_threads"],
      ["reconstruct", "--image_path", "i", "--workspace_path", "w", "--num_threads"],
