@@ -380,10 +380,10 @@ def _read_config_file(cls: type, path: Path, where: str | None, chain: tuple[Pat
     if path.resolve() in chain:
         raise ConfigError(f"{where}: its \"base\" chain comes back to it")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise ConfigError(f"{where} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"cannot read {where}: {exc}") from None
     base = None
     if isinstance(data, dict) and "config" in data and "config_class" in data:
