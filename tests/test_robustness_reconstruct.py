@@ -224,6 +224,9 @@ def test_summary_names_the_real_dense_workspace_and_previews_folder(tmp_path):
     done = ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense, previews_path=previews)
     text = report_reconstruct(done)
     assert f"dense workspace: {dense}\n" in text and f"previews:        {previews}  (1 depth maps" in text
+    (previews / "cam0").mkdir()  # image names with folders (cam0/x.jpg) keep them in the previews
+    (previews / "cam0" / "x.jpg.geometric.depth.png").write_bytes(b"")
+    assert f"previews:        {previews}  (2 depth maps" in report_reconstruct(done)
     assert "(off; run with --previews true)" in report_reconstruct(
         ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense))
 
