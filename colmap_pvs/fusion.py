@@ -506,6 +506,8 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         rgb = np.zeros((0, 3), np.uint8)
         counts = np.zeros(0, np.int64)
         vis_idx = np.zeros(0, np.int64)
+    if not len(xyz):  # before anything is written or set aside: an existing cloud stays as it was
+        raise _no_points_error(config, ws, names, result)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     _set_aside_foreign_cloud(result.output_path)
     write_cloud_pair(result.output_path, xyz, normals, rgb, offsets, vis_idx)  # together or not at all
@@ -561,14 +563,29 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
         vis_tmp = vis_path_of(tmp_ply)
         if not tmp_ply.is_file() or not vis_tmp.is_file():
             raise WorkspaceError(f"COLMAP's stereo_fusion wrote no point cloud for {str(ws.root)!r}")
+        result.num_points = len(read_point_cloud(tmp_ply))
+        if not result.num_points:
+            raise _no_points_error(config, ws, names, result)
         _set_aside_foreign_cloud(out)
         commit_cloud_pair(tmp_ply, vis_tmp, out)  # together or not at all
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    result.num_points = len(read_point_cloud(out))
 
 
 # --------------------------------------------------------------------------- entry point
+
+
+def _no_points_error(config: FuseConfig, ws: Workspace, names: list[str],
+                     result: FuseResult) -> WorkspaceError:
+    """The one-line error of a fusion that made no point: an empty cloud is never written."""
+    fused = [n for n in names if n not in result.skipped]
+    shown = ", ".join(repr(n) for n in fused[:3]) + (f" and {len(fused) - 3} more" if len(fused) > 3 else "")
+    unusable = f"; {len(result.skipped)} listed image(s) skipped, named above" if result.skipped else ""
+    return WorkspaceError(
+        f"fusion made no points from the {config.input_type} maps of {len(fused)} image(s) in "
+        f"{str(ws.stereo_dir)!r} ({shown or 'none usable'}){unusable}; {str(result.output_path)!r} was not "
+        f"written (a cloud already there is kept): check those maps or loosen the fusion thresholds"
+    )
 
 
 def _set_aside_foreign_cloud(out: Path) -> None:
