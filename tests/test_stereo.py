@@ -938,3 +938,34 @@ def test_a_fixed_depth_range_is_every_references_range(synthetic_ws, tiny_checkp
                                                       depth_range=[0.5, 9]))
     assert ctx.selection.references
     assert {entry.depth_range for entry in ctx.selection.references.values()} == {(0.5, 9.0)}
+
+
+def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+    """A disk that fills up during `stereo --overwrite` had already cost the old photometric maps: each
+    pass's new files are now written beside the old ones first, and the old go only once all are written."""
+    import errno
+
+    import colmap_pvs.io.files as files_module
+    from colmap_pvs.errors import OutputError
+
+    ws = _copy(synthetic_ws, tmp_path)
+    flags = dict(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                 geom_fill=False)
+    run_stereo(stereo_config(**flags))
+    before = {p: p.read_bytes() for p in (ws / "stereo").rglob("*") if p.is_file()}
+    real = files_module.tempfile.mkstemp
+
+    def full(*args, **kwargs):
+        if Path(kwargs["dir"]).name == "normal_maps":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(files_module.tempfile, "mkstemp", full)
+    with pytest.raises(OutputError, match="No space left on device"):
+        run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5))
+    monkeypatch.undo()
+    after = {p: p.read_bytes() for p in (ws / "stereo").rglob("*") if p.is_file()}
+    run_record = ws / "stereo" / stereo_config_module.CONFIG_FILENAME  # the last run's settings
+    assert after.keys() == before.keys()  # no temporary file left
+    assert {p for p in after if after[p] != before[p]} == {run_record}  # every map and provenance kept
+    assert run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5)).processed
