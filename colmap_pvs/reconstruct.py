@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -557,17 +558,23 @@ def _reconstruct(
         prog.skip("undistort", f"dense workspace found in {dense}")
     else:
         prog.start("undistort")
-        if dense.exists():
-            shutil.rmtree(dense)
-        prog.unmark("stereo", "fusion", "mesh")
+        # the new workspace is made beside the old one, which goes only once it is complete
+        staged, old = root / f".{dense.name}.new", root / f".{dense.name}.old"
+        for leftover in (staged, old):  # of a run killed while swapping
+            shutil.rmtree(leftover, ignore_errors=True)
         undistort(
             UndistortConfig(
                 image_path=image_dir,
                 input_path=sparse,
-                output_path=dense,
+                output_path=staged,
                 max_image_size=config.undistort_max_image_size,
             )
         )
+        prog.unmark("stereo", "fusion", "mesh")
+        if dense.exists():
+            os.replace(dense, old)
+        os.replace(staged, dense)
+        shutil.rmtree(old, ignore_errors=True)
         prog.mark("undistort")
         prog.stop()
     if config.stop_after == "undistort":

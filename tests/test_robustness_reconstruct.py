@@ -310,3 +310,35 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
         {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))
     with pytest.raises(ConfigError, match=r"confidence calibration \(sha256 None -> "):
         reconstruct(reconstruct_config(**flags))
+
+
+def test_a_failed_undistort_of_an_overwrite_keeps_the_old_dense_workspace(analytic_scene, tmp_path,
+                                                                          monkeypatch):
+    """`reconstruct --overwrite` removed the old dense workspace (its depth maps: hours) before the new
+    one was made: a failing undistort (disk full) now leaves it as it was."""
+    import errno
+    import os
+
+    import colmap_pvs.io.workspace as workspace_module
+    from colmap_pvs.errors import OutputError
+    from colmap_pvs.reconstruct import reconstruct
+
+    ws = analytic_scene["root"]
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", num_threads=1,
+                 stop_after="undistort")
+    reconstruct(reconstruct_config(**flags))
+    before = {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file()}
+
+    def full(config):
+        raise OutputError(f"cannot write {str(config.output_path)!r}: {os.strerror(errno.ENOSPC)}")
+
+    monkeypatch.setattr(workspace_module, "undistort", full)
+    with pytest.raises(OutputError, match="No space left"):
+        reconstruct(reconstruct_config(**flags, undistort_max_image_size=64, overwrite=True))
+    assert {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file()} == before
+    monkeypatch.undo()
+    reconstruct(reconstruct_config(**flags, undistort_max_image_size=64, overwrite=True))
+    assert before.keys() != {p for p in (out / "dense").rglob("*") if p.is_file()} or any(
+        p.read_bytes() != data for p, data in before.items())
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".dense")) == []
