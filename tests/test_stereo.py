@@ -969,3 +969,25 @@ def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_chec
     assert after.keys() == before.keys()  # no temporary file left
     assert {p for p in after if after[p] != before[p]} == {run_record}  # every map and provenance kept
     assert run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5)).processed
+
+
+def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
+                                                                             tiny_checkpoint, caplog):
+    """Sources all below geom_min_triangulation_angle give an empty geometric map: a WARNING names the
+    image, the angles and what to do (no warning at the default angle)."""
+    ws = _copy(synthetic_ws, tmp_path)
+    flags = dict(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                 geom_fill=False)
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        run_stereo(stereo_config(**flags, geom_min_triangulation_angle=89))
+    warned = [r.getMessage() for r in caplog.records if "geom_min_triangulation_angle" in r.getMessage()]
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    assert len(warned) == len(names) and all(any(repr(n) in m for m in warned) for n in names)
+    assert "median angles:" in warned[0] and "lower --geom_min_triangulation_angle" in warned[0]
+    for name in names:
+        assert not read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin").any()
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        run_stereo(stereo_config(**flags, overwrite=True))
+    assert "geom_min_triangulation_angle" not in caplog.text
