@@ -581,10 +581,15 @@ def _no_points_error(config: FuseConfig, ws: Workspace, names: list[str],
     fused = [n for n in names if n not in result.skipped]
     shown = ", ".join(repr(n) for n in fused[:3]) + (f" and {len(fused) - 3} more" if len(fused) > 3 else "")
     unusable = f"; {len(result.skipped)} listed image(s) skipped, named above" if result.skipped else ""
+    if fused:
+        what = (f" from the {config.input_type} maps of {len(fused)} image(s) in {str(ws.stereo_dir)!r} "
+                f"({shown}){unusable}")
+    else:
+        what = (f": the {config.input_type} maps in {str(ws.stereo_dir)!r} of all {len(result.skipped)} "
+                f"listed image(s) are unusable (named above)")
     return WorkspaceError(
-        f"fusion made no points from the {config.input_type} maps of {len(fused)} image(s) in "
-        f"{str(ws.stereo_dir)!r} ({shown or 'none usable'}){unusable}; {str(result.output_path)!r} was not "
-        f"written (a cloud already there is kept): check those maps or loosen the fusion thresholds"
+        f"fusion made no points{what}; {str(result.output_path)!r} was not written (a cloud already "
+        f"there is kept): check those maps or loosen the fusion thresholds"
     )
 
 

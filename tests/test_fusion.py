@@ -243,7 +243,7 @@ def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace
     with pytest.raises(WorkspaceError, match="no geometric depth"):
         fuse(FuseConfig(workspace_path=workspace))
     # a completion needs its confidence (0 marks the unsupported pixels): without it, no image
-    with pytest.raises(WorkspaceError, match="no points from the filled maps of 0 image.*5 listed image"):
+    with pytest.raises(WorkspaceError, match="no points: the filled maps .* of all 5 listed image"):
         fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
     _supported_everywhere(workspace, gt["names"])
     result = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
