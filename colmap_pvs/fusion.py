@@ -587,9 +587,13 @@ def _no_points_error(config: FuseConfig, ws: Workspace, names: list[str],
     else:
         what = (f": the {config.input_type} maps in {str(ws.stereo_dir)!r} of all {len(result.skipped)} "
                 f"listed image(s) are unusable (named above)")
+    advice = "check those maps or loosen the fusion thresholds"
+    if config.method == "pvs" and len(names) - 1 < config.min_consistent_views:
+        advice = (f"with {len(names)} image(s) a point has at most {len(names) - 1} agreeing view(s), fewer "
+                  f"than min_consistent_views {config.min_consistent_views}: add photos or lower it")
     return WorkspaceError(
         f"fusion made no points{what}; {str(result.output_path)!r} was not written (a cloud already "
-        f"there is kept): check those maps or loosen the fusion thresholds"
+        f"there is kept): {advice}"
     )
 
 
