@@ -838,12 +838,19 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     write(old)
     assert stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
-    def dies(path, array):
-        raise OSError("disk full")
+    import os
 
-    monkeypatch.setattr(stereo_outputs, "write_depth_map", dies)
+    real_replace = os.replace
+
+    def dies(src, dst):  # every new file is written; the run dies as the new depth is renamed into place
+        if Path(dst) == ws.depth_map_path("a.png", stage):
+            raise OSError("killed")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", dies)
     with pytest.raises(OSError):
         write(new)
+    assert stereo_outputs.read_provenance(ws, "a.png", stage)["settings"] == new  # renamed before it
     assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(new), (8, 6))
     assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
