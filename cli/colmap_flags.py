@@ -3,8 +3,10 @@
 A script that runs ``colmap patch_match_stereo --workspace_path dense --workspace_format COLMAP
 --PatchMatchStereo.geom_consistency true`` keeps working after swapping the binary for
 ``colmap-pvs``. Flags with a meaning here are translated to :class:`colmap_pvs.stereo.StereoConfig`
-fields; flags of COLMAP's patch-match optimiser (window, NCC, filtering, ...) have no meaning for a
-learned network and are named in one warning, never dropped silently.
+fields (the geometric filter's thresholds, ...); flags of COLMAP's patch-match optimiser (window,
+NCC, sampling, ...) have no meaning for a learned network and are named in one warning, never dropped
+silently, as is a fixed depth range (``depth_min``/``depth_max`` >= 0: each image's range comes from
+its sparse points, COLMAP's default).
 """
 
 from __future__ import annotations
@@ -29,6 +31,13 @@ def _int(flag: str, text: str) -> int:
         raise ConfigError(f"--{flag}: expected an integer, got {text!r}") from None
 
 
+def _float(flag: str, text: str) -> float:
+    try:
+        return float(str(text).strip())
+    except ValueError:
+        raise ConfigError(f"--{flag}: expected a number, got {text!r}") from None
+
+
 def _bool(flag: str, text: str) -> bool:
     try:
         return parse_bool(text)
@@ -44,6 +53,27 @@ def _max_image_size(flag: str, text: str) -> dict[str, Any]:
 def _geom_consistency(flag: str, text: str) -> dict[str, Any]:
     """= --geom_consistency"""
     return {"geom_consistency": _bool(flag, text)}
+
+
+def _min_num_consistent(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_min_consistent"""
+    return {"geom_min_consistent": _int(flag, text)}
+
+
+def _min_triangulation_angle(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_min_triangulation_angle"""
+    return {"geom_min_triangulation_angle": _float(flag, text)}
+
+
+def _geom_max_cost(flag: str, text: str) -> dict[str, Any]:
+    """= --geom_max_reproj_error (the forward-backward reprojection error in px)"""
+    return {"geom_max_reproj_error": _float(flag, text)}
+
+
+def _depth_bound(flag: str, text: str) -> dict[str, Any] | None:
+    """COLMAP's -1 (each image's range from its sparse points) is what colmap-pvs does; a fixed bound
+    has no equivalent (ignored with a warning)"""
+    return {} if _float(flag, text) < 0 else None
 
 
 def _num_threads(flag: str, text: str) -> dict[str, Any]:
@@ -90,7 +120,7 @@ def _project_path(flag: str, text: str) -> dict[str, Any]:
 
 
 #: flag -> translation into StereoConfig fields (``None``: accepted, no meaning here).
-PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None] = {
+PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any] | None] | None] = {
     "workspace_format": _workspace_format,
     "pmvs_option_name": None,
     "config_path": _config_path,
@@ -100,15 +130,21 @@ PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None]
     "PatchMatchStereo.geom_consistency": _geom_consistency,
     "PatchMatchStereo.num_threads": _num_threads,
     "PatchMatchStereo.gpu_index": _gpu_index,
+    "PatchMatchStereo.depth_min": _depth_bound,
+    "PatchMatchStereo.depth_max": _depth_bound,
+    "PatchMatchStereo.filter_min_num_consistent": _min_num_consistent,
+    "PatchMatchStereo.filter_min_triangulation_angle": _min_triangulation_angle,
+    "PatchMatchStereo.filter_geom_consistency_max_cost": _geom_max_cost,
+    # COLMAP's patch-match optimiser and its photometric filter: nothing in a learned network matches
+    # them (its own min_triangulation_angle weights sources while sampling; filter, filter_min_ncc and
+    # geom_consistency_max_cost act on its NCC costs)
     **{
         f"PatchMatchStereo.{name}": None
         for name in (
-            "depth_min", "depth_max", "window_radius", "window_step", "sigma_spatial", "sigma_color",
+            "window_radius", "window_step", "sigma_spatial", "sigma_color",
             "num_samples", "ncc_sigma", "min_triangulation_angle", "incident_angle_sigma",
             "num_iterations", "geom_consistency_regularizer", "geom_consistency_max_cost", "filter",
-            "filter_min_ncc", "filter_min_triangulation_angle", "filter_min_num_consistent",
-            "filter_geom_consistency_max_cost", "cache_size", "allow_missing_files",
-            "write_consistency_graph",
+            "filter_min_ncc", "cache_size", "allow_missing_files", "write_consistency_graph",
         )
     },
 }
@@ -141,17 +177,21 @@ def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
             flag for the same setting.
     """
     given = {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST)}
-    values: dict[str, Any] = {}
+    translated: list[tuple[str, dict[str, Any]]] = []
     ignored = []
     for flag, text in given.items():
         translate = PATCH_MATCH_STEREO_FLAGS[flag]
-        if translate is None:
+        items = None if translate is None else translate(flag, text)
+        if items is None:
             ignored.append(f"--{flag}")
-            continue
-        for key, value in translate(flag, text).items():
+        else:
+            translated.append((f"{flag} {text}", items))
+    values: dict[str, Any] = {}
+    for given_as, items in translated:
+        for key, value in items.items():
             own = getattr(args, key, None)
             if hasattr(args, key) and own != value:
-                raise ConfigError(f"--{flag} {text} contradicts --{key} {own}; give only one of them")
+                raise ConfigError(f"--{given_as} contradicts --{key} {own}; give only one of them")
             values[key] = value
     if ignored:
         logger.warning("ignored COLMAP flag(s) without a meaning for colmap-pvs: %s", ", ".join(ignored))

@@ -79,7 +79,7 @@ def report_reconstruct(result) -> str:
     if previews is None:
         previews_line = "  previews:        (off; run with --previews true)"
     elif previews.is_dir():
-        n_previews = len(list(previews.glob("*.depth.png")))
+        n_previews = len(list(previews.rglob("*.depth.png")))  # image names may hold folders
         previews_line = (
             f"  previews:        {previews}  ({n_previews} depth maps as PNG, with normals and confidence)"
         )

@@ -33,7 +33,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import config_to_dict
+from .config import check_threads, config_to_dict
 from .errors import ConfigError
 from .io.files import atomic_write_bytes, file_sha256
 
@@ -66,6 +66,7 @@ class AdaptConfig:
     def __post_init__(self) -> None:
         from .train.real_dataset import STEREO_PSEUDO_LABEL_KINDS
 
+        check_threads("threads", self.threads, auto=0)
         if self.pseudo_labels not in STEREO_PSEUDO_LABEL_KINDS:
             raise ConfigError(
                 f"AdaptConfig: pseudo_labels must be one of {STEREO_PSEUDO_LABEL_KINDS}, "

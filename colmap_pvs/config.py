@@ -66,6 +66,26 @@ def check_range(
         raise ConfigError(f"{name} must be a finite number{' ' + bounds if bounds else ''}, got {value!r}")
 
 
+#: A thread count above ``THREADS_PER_CPU`` x this machine's CPUs (and above ``MIN_THREAD_CAP``) is refused:
+#: so many threads fail to start (a crash in OpenMP, Open3D or COLMAP) or only slow the run down.
+THREADS_PER_CPU = 4
+MIN_THREAD_CAP = 256
+
+
+def check_threads(name: str, value: int, *, auto: int | None) -> None:
+    """Raise :class:`ConfigError` naming ``name`` unless ``value`` is ``auto`` (the option's "all cores" or
+    "default" value; ``None``: none) or ``1 .. max(MIN_THREAD_CAP, THREADS_PER_CPU x os.cpu_count())``."""
+    cpus = os.cpu_count() or 1
+    cap = max(MIN_THREAD_CAP, THREADS_PER_CPU * cpus)
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if ok and (value == auto or 1 <= value <= cap):
+        return
+    meaning = {0: "the default", -1: "all cores"}.get(auto, "")
+    allowed = (f"{auto} ({meaning}) or " if auto is not None else "") + f"1 to {cap}"
+    raise ConfigError(f"{name} must be {allowed} (the larger of {MIN_THREAD_CAP} and {THREADS_PER_CPU} x "
+                      f"this machine's {cpus} CPUs), got {value!r}")
+
+
 def check_int_fields(cfg: Any, prefix: str = "") -> None:
     """Raise :class:`ConfigError` naming the field unless every field of the dataclass ``cfg``
     annotated ``int`` holds an integer (not a bool). A ``float`` passed in Python code is refused;
@@ -360,10 +380,10 @@ def _read_config_file(cls: type, path: Path, where: str | None, chain: tuple[Pat
     if path.resolve() in chain:
         raise ConfigError(f"{where}: its \"base\" chain comes back to it")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise ConfigError(f"{where} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"cannot read {where}: {exc}") from None
     base = None
     if isinstance(data, dict) and "config" in data and "config_class" in data:

@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .config import check_threads
 from .errors import CheckpointError, ConfigError, WorkspaceError
 
 logger = logging.getLogger(__name__)
@@ -46,6 +47,7 @@ class DemoConfig:
     threads: int = field(default=0, metadata={"help": "torch CPU threads; 0 keeps torch's default"})
 
     def __post_init__(self) -> None:
+        check_threads("threads", self.threads, auto=0)
         if self.num_images < 2:
             raise ConfigError(f"num_images must be >= 2, got {self.num_images}")
         if self.num_views < 2:

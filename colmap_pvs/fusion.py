@@ -509,6 +509,8 @@ def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list
         rgb = np.zeros((0, 3), np.uint8)
         counts = np.zeros(0, np.int64)
         vis_idx = np.zeros(0, np.int64)
+    if not len(xyz):  # before anything is written or set aside: an existing cloud stays as it was
+        raise _no_points_error(config, ws, names, result)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     _set_aside_foreign_cloud(result.output_path)
     write_cloud_pair(result.output_path, xyz, normals, rgb, offsets, vis_idx)  # together or not at all
@@ -564,11 +566,13 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
         vis_tmp = vis_path_of(tmp_ply)
         if not tmp_ply.is_file() or not vis_tmp.is_file():
             raise WorkspaceError(f"COLMAP's stereo_fusion wrote no point cloud for {str(ws.root)!r}")
+        result.num_points = len(read_point_cloud(tmp_ply))
+        if not result.num_points:
+            raise _no_points_error(config, ws, names, result)
         _set_aside_foreign_cloud(out)
         commit_cloud_pair(tmp_ply, vis_tmp, out)  # together or not at all
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    result.num_points = len(read_point_cloud(out))
 
 
 # --------------------------------------------------------------------------- entry point
@@ -585,6 +589,28 @@ def fusion_inputs_sha256(workspace_path: str | os.PathLike) -> str:
     for cfg in (ws.fusion_cfg, ws.patch_match_cfg):
         digest.update(file_sha256(cfg).encode() if cfg.is_file() else b"none")
     return digest.hexdigest()
+
+
+def _no_points_error(config: FuseConfig, ws: Workspace, names: list[str],
+                     result: FuseResult) -> WorkspaceError:
+    """The one-line error of a fusion that made no point: an empty cloud is never written."""
+    fused = [n for n in names if n not in result.skipped]
+    shown = ", ".join(repr(n) for n in fused[:3]) + (f" and {len(fused) - 3} more" if len(fused) > 3 else "")
+    unusable = f"; {len(result.skipped)} listed image(s) skipped, named above" if result.skipped else ""
+    if fused:
+        what = (f" from the {config.input_type} maps of {len(fused)} image(s) in {str(ws.stereo_dir)!r} "
+                f"({shown}){unusable}")
+    else:
+        what = (f": the {config.input_type} maps in {str(ws.stereo_dir)!r} of all {len(result.skipped)} "
+                f"listed image(s) are unusable (named above)")
+    advice = "check those maps or loosen the fusion thresholds"
+    if config.method == "pvs" and len(names) - 1 < config.min_consistent_views:
+        advice = (f"with {len(names)} image(s) a point has at most {len(names) - 1} agreeing view(s), fewer "
+                  f"than min_consistent_views {config.min_consistent_views}: add photos or lower it")
+    return WorkspaceError(
+        f"fusion made no points{what}; {str(result.output_path)!r} was not written (a cloud already "
+        f"there is kept): {advice}"
+    )
 
 
 def _set_aside_foreign_cloud(out: Path) -> None:

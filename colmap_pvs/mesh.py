@@ -26,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 
+from .config import check_threads
 from .errors import ConfigError, MapFormatError
 from .io.files import current_umask
 from .io.ply import read_point_cloud, write_mesh
@@ -82,6 +83,7 @@ class MeshConfig:
     num_threads: int = field(default=-1, metadata={"help": "threads; -1 = all"})
 
     def __post_init__(self) -> None:
+        check_threads("num_threads", self.num_threads, auto=-1)
         if not 1 <= self.depth <= 16:
             raise ConfigError(f"depth must be in [1, 16], got {self.depth}")
         if not 0.0 <= self.density_quantile < 1.0:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from pathlib import Path
 from typing import Literal
 
 from .confidence import calibration_path, load_calibration
-from .config import config_to_dict, replace_config, save_config
+from .config import check_threads, config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256, files_state_sha256
@@ -128,8 +129,7 @@ class ReconstructConfig:
             raise ConfigError(f"sift_peak_threshold must be in (0, 1), got {self.sift_peak_threshold}")
         if self.exhaustive_max_images < 2:
             raise ConfigError(f"exhaustive_max_images must be >= 2, got {self.exhaustive_max_images}")
-        if self.num_threads == 0 or self.num_threads < -1:
-            raise ConfigError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        check_threads("num_threads", self.num_threads, auto=-1)
         if not 1 <= self.mesh_depth <= 16:
             raise ConfigError(f"mesh_depth must be in [1, 16], got {self.mesh_depth}")
 
@@ -560,17 +560,23 @@ def _reconstruct(
         prog.skip("undistort", f"dense workspace found in {dense}")
     else:
         prog.start("undistort")
-        if dense.exists():
-            shutil.rmtree(dense)
-        prog.unmark("stereo", "fusion", "mesh")
+        # the new workspace is made beside the old one, which goes only once it is complete
+        staged, old = root / f".{dense.name}.new", root / f".{dense.name}.old"
+        for leftover in (staged, old):  # of a run killed while swapping
+            shutil.rmtree(leftover, ignore_errors=True)
         undistort(
             UndistortConfig(
                 image_path=image_dir,
                 input_path=sparse,
-                output_path=dense,
+                output_path=staged,
                 max_image_size=config.undistort_max_image_size,
             )
         )
+        prog.unmark("stereo", "fusion", "mesh")
+        if dense.exists():
+            os.replace(dense, old)
+        os.replace(staged, dense)
+        shutil.rmtree(old, ignore_errors=True)
         prog.mark("undistort")
         prog.stop()
     if config.stop_after == "undistort":

@@ -127,6 +127,10 @@ def test_find_gt_depth_patterns(tmp_path):
     assert find_gt_depth(tmp_path, "000.png", "{name}") == tmp_path / "000.png.npy"
     cv2.imwrite(str(tmp_path / "001.png"), np.ones((2, 2), np.uint16))
     assert find_gt_depth(tmp_path, "001.png", "{name}") == tmp_path / "001.png"  # the file itself first
+    # the default pattern ({stem}) finds the demo's own GT (000.png -> 000.png.npy) where 000.* is missing
+    assert find_gt_depth(tmp_path, "000.png") == tmp_path / "000.png.npy"
+    np.save(tmp_path / "000.npy", np.ones((2, 2)))
+    assert find_gt_depth(tmp_path, "000.png") == tmp_path / "000.npy"  # the stem first
     with pytest.raises(ConfigError, match="gt_pattern"):
         find_gt_depth(tmp_path, "x.jpg", "{bad}")
 

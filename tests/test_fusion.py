@@ -221,7 +221,8 @@ def test_confidence_maps_filter_pixels(workspace, analytic_scene):
             workspace / "stereo" / "confidence_maps" / f"{name}.bin", np.full((h, w), 0.2, np.float32)
         )
     assert fuse(FuseConfig(workspace_path=workspace)).num_points > 1000  # min_confidence 0: ignored
-    assert fuse(FuseConfig(workspace_path=workspace, min_confidence=0.5)).num_points == 0
+    with pytest.raises(WorkspaceError, match="fusion made no points"):  # an empty cloud is an error
+        fuse(FuseConfig(workspace_path=workspace, min_confidence=0.5))
 
 
 def _supported_everywhere(workspace: Path, names: list[str]) -> None:
@@ -242,8 +243,8 @@ def test_completed_maps_fuse_without_normal_maps_onto_the_true_surface(workspace
     with pytest.raises(WorkspaceError, match="no geometric depth"):
         fuse(FuseConfig(workspace_path=workspace))
     # a completion needs its confidence (0 marks the unsupported pixels): without it, no image
-    none = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
-    assert none.num_points == 0 and all("no confidence map" in none.skipped[n] for n in gt["names"])
+    with pytest.raises(WorkspaceError, match="no points: the filled maps .* of all 5 listed image"):
+        fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
     _supported_everywhere(workspace, gt["names"])
     result = fuse(FuseConfig(workspace_path=workspace, input_type="filled"))
     assert result.num_images == 5 and result.num_points > 5000
@@ -321,7 +322,8 @@ def test_fusing_the_completion_counts_the_geometric_check_as_one_agreeing_view(w
     assert 0.2 < fewer.points_per_image[names[1]] / checked.points_per_image[names[1]] < 0.9
     for name in names:
         (maps / f"{name}.geometric.bin").unlink()
-    assert fuse(strict).num_points == 0
+    with pytest.raises(WorkspaceError, match="fusion made no points"):
+        fuse(strict)
     # a wrong block: no source agrees with it
     for name in names:
         shutil.copy(maps / f"{name}.filled.bin", maps / f"{name}.geometric.bin")

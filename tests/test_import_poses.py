@@ -79,6 +79,30 @@ def test_hololens_reader_convention_and_errors(tmp_path):
         read_known_cameras(tmp_path)
 
 
+def test_readers_accept_a_utf8_byte_order_mark(tmp_path):
+    """Files saved by Windows editors start with a BOM: read as if it were not there (not as part of the
+    first name or number)."""
+    bom = "\ufeff"
+    K = np.array([[100.0, 0, 50], [0, 110.0, 40], [0, 0, 1]])
+    pose = np.concatenate([_rotation(5), [[1.0], [2.0], [3.0]]], axis=1)
+    (tmp_path / "p.json").write_text(bom + json.dumps([{"name": "x.png", "K": K.tolist(),
+                                                         "cam_from_world": pose.tolist()}]), encoding="utf-8")
+    row = ",".join(["x.png", "100", "110", "50", "40", *(repr(float(v)) for v in pose.ravel())])
+    (tmp_path / "p.csv").write_text(bom + row + "\n", encoding="utf-8")
+    holo = tmp_path / "holo"
+    holo.mkdir()
+    world_from_cam = np.vstack([np.concatenate([pose[:, :3].T, (-pose[:, :3].T @ pose[:, 3])[:, None]], 1),
+                                [0, 0, 0, 1]])
+    np.savetxt(holo / "K.txt", K, header=bom, comments="")
+    np.savetxt(holo / "poses.txt", world_from_cam.reshape(1, 16), header=bom, comments="")
+    (holo / "frames.txt").write_text(bom + "x.png\n", encoding="utf-8")
+    for path in (tmp_path / "p.json", tmp_path / "p.csv", holo):
+        _, cams = read_known_cameras(path)
+        assert [c.name for c in cams] == ["x.png"], path
+        np.testing.assert_allclose(cams[0].cam_from_world, pose, atol=1e-9)
+        np.testing.assert_allclose(cams[0].K, K)
+
+
 def test_json_and_csv_readers(tmp_path):
     K = [[100.0, 0, 50], [0, 110.0, 40], [0, 0, 1]]
     R = _rotation(3)

@@ -204,6 +204,23 @@ def test_patch_match_cfg_round_trip(tmp_path: Path) -> None:
     assert (tmp_path / "fusion.cfg").read_text() == "a.jpg\nsub/c.jpg\n"
 
 
+def test_cfg_files_and_config_files_with_a_utf8_byte_order_mark_are_read(tmp_path: Path) -> None:
+    """A patch-match.cfg, fusion.cfg or --config_file saved with a BOM (Windows editors) reads as without."""
+    from colmap_pvs.config import read_config_file
+    from colmap_pvs.fusion import FuseConfig
+
+    (tmp_path / "patch-match.cfg").write_bytes("\ufeffa.jpg\nb.jpg, c.jpg\n".encode())
+    specs = read_patch_match_cfg(tmp_path / "patch-match.cfg")
+    assert specs == {"a.jpg": SourceSpec("explicit", ("b.jpg", "c.jpg"), 2)}
+    (tmp_path / "fusion.cfg").write_bytes("\ufeffa.jpg\nb.jpg\n".encode())
+    assert read_fusion_cfg(tmp_path / "fusion.cfg") == ["a.jpg", "b.jpg"]
+    (tmp_path / "fuse.json").write_bytes('\ufeff{"num_sources": 3}'.encode())
+    assert read_config_file(FuseConfig, tmp_path / "fuse.json") == {"num_sources": 3}
+    (tmp_path / "latin1.cfg").write_bytes("caf\xe9.jpg\n".encode("latin-1"))
+    with pytest.raises(WorkspaceError, match="latin1.cfg"):
+        read_fusion_cfg(tmp_path / "latin1.cfg")
+
+
 def test_patch_match_cfg_colmap_variants(tmp_path: Path) -> None:
     text = "# made by hand\n\n  a.jpg \n__auto__, 20\nb.jpg\n__all__\nc.jpg\n a.jpg ;b.jpg,\n"
     (tmp_path / "pm.cfg").write_text(text)

@@ -53,6 +53,35 @@ def test_stereo_cli_refuses_bad_values(tmp_path, capsys):
         assert flag[2:] in err and value in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [["stereo", "--workspace_path", "w", "--threads"],
+     ["stereo", "--workspace_path", "w", "--ray_worker_threads"],
+     ["patch_match_stereo", "--workspace_path", "w", "--PatchMatchStereo.num_threads"],
+     ["mesh", "--input_path", "c.ply", "--num_threads"],
+     ["reconstruct", "--image_path", "i", "--workspace_path", "w", "--num_threads"],
+     ["import-poses", "--image_path", "i", "--poses_path", "p.txt", "--output_path", "o", "--num_threads"],
+     ["demo", "--output_path", "o", "--threads"], ["train", "--output_dir", "o", "--torch_threads"]],
+    ids=lambda argv: argv[0] + " " + argv[-1],
+)
+def test_every_thread_count_is_bounded_with_a_one_line_error(argv, tmp_path, monkeypatch, capsys):
+    """`stereo --threads 100000` crashed (SIGSEGV), `mesh --num_threads 100000` aborted: every threads
+    option of every command refuses a count far above the machine's CPUs, naming the value and the bound."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv, "100000"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "100000" in err and "256" in err, err
+    assert argv[-1].rsplit(".", 1)[-1].lstrip("-").replace("num_", "") in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_test_time_adaptation_thread_count_is_bounded():
+    from colmap_pvs.adapt import AdaptConfig
+
+    with pytest.raises(ConfigError, match="threads must be 0 .* 1 to 256 .*got 100000"):
+        AdaptConfig(threads=100000)
+
+
 def test_nan_is_never_a_number():
     with pytest.raises(ConfigError, match="nan"):
         config_from_dict(FuseConfig, {"workspace_path": "w", "max_depth_error": "nan"})

@@ -102,6 +102,27 @@ def test_colmap_method_checks_maps_first(workspace, analytic_scene, damage, capl
     assert (workspace / "stereo" / "fusion.cfg").read_text().count(name) == 1  # the user's file untouched
 
 
+@pytest.mark.parametrize("method", ["pvs", "colmap"])
+def test_an_empty_cloud_is_an_error_and_the_old_cloud_stays(workspace, analytic_scene, method, capsys):
+    """`fuse --input_type geometric` on maps that agree nowhere wrote "0 points from 3 images" and exited 0:
+    now one line naming the maps, a non-zero exit, and the cloud already there untouched."""
+    from colmap_pvs.cli.main import main
+    from colmap_pvs.io.maps import read_depth_map, write_depth_map
+
+    fuse(FuseConfig(workspace_path=workspace, method=method))
+    ply, vis = _pair(workspace)
+    before = (ply.read_bytes(), vis.read_bytes())
+    for i, name in enumerate(analytic_scene["names"]):  # every map at another scale: no two agree
+        path = workspace / "stereo" / "depth_maps" / f"{name}.geometric.bin"
+        write_depth_map(path, read_depth_map(path) * (1.5 ** i))
+    code = main(["fuse", "--workspace_path", str(workspace), "--input_type", "geometric", "--method", method])
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # after the progress bar
+    assert code == 1 and err.startswith("colmap-pvs fuse: error: fusion made no points"), err
+    assert "no points from the geometric maps of 5 image(s)" in err and analytic_scene["names"][0] in err
+    assert (ply.read_bytes(), vis.read_bytes()) == before
+    assert sorted(p.name for p in workspace.glob("*fused.ply*")) == ["fused.ply", "fused.ply.vis"]
+
+
 def test_colmap_method_with_every_map_broken_is_an_error(workspace, analytic_scene):
     for path in (workspace / "stereo" / "normal_maps").glob("*.bin"):
         path.write_bytes(b"")

@@ -224,6 +224,9 @@ def test_summary_names_the_real_dense_workspace_and_previews_folder(tmp_path):
     done = ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense, previews_path=previews)
     text = report_reconstruct(done)
     assert f"dense workspace: {dense}\n" in text and f"previews:        {previews}  (1 depth maps" in text
+    (previews / "cam0").mkdir()  # image names with folders (cam0/x.jpg) keep them in the previews
+    (previews / "cam0" / "x.jpg.geometric.depth.png").write_bytes(b"")
+    assert f"previews:        {previews}  (2 depth maps" in report_reconstruct(done)
     assert "(off; run with --previews true)" in report_reconstruct(
         ReconstructResult(workspace_path=tmp_path / "ws", dense_path=dense))
 
@@ -332,3 +335,50 @@ def test_fusion_and_mesh_follow_the_maps_they_read(analytic_scene, tmp_path, cap
     assert fused.stat().st_mtime_ns != before
     assert any("changed since" in r.getMessage() and "fusing again" in r.getMessage() for r in caplog.records)
     assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
+
+
+def test_a_failed_undistort_of_an_overwrite_keeps_the_old_dense_workspace(analytic_scene, tmp_path,
+                                                                          monkeypatch):
+    """`reconstruct --overwrite` removed the old dense workspace (its depth maps: hours) before the new
+    one was made: a failing undistort (disk full) now leaves it as it was."""
+    import errno
+    import os
+
+    import colmap_pvs.io.workspace as workspace_module
+    from colmap_pvs.errors import OutputError
+    from colmap_pvs.reconstruct import reconstruct
+
+    ws = analytic_scene["root"]
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", num_threads=1,
+                 stop_after="undistort")
+    reconstruct(reconstruct_config(**flags))
+    before = {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file()}
+
+    def full(config):
+        raise OutputError(f"cannot write {str(config.output_path)!r}: {os.strerror(errno.ENOSPC)}")
+
+    monkeypatch.setattr(workspace_module, "undistort", full)
+    with pytest.raises(OutputError, match="No space left"):
+        reconstruct(reconstruct_config(**flags, undistort_max_image_size=64, overwrite=True))
+    assert {p: p.read_bytes() for p in (out / "dense").rglob("*") if p.is_file()} == before
+    monkeypatch.undo()
+    reconstruct(reconstruct_config(**flags, undistort_max_image_size=64, overwrite=True))
+    assert before.keys() != {p for p in (out / "dense").rglob("*") if p.is_file()} or any(
+        p.read_bytes() != data for p, data in before.items())
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".dense")) == []
+
+
+def test_two_overlapping_photos_reconstruct(shared_data_dir, tmp_path):
+    """Two neighbouring frames (500+ verified matches) said "too few matches": pycolmap's mapper ignores
+    the points only two images see, even for its initial pair; COLMAP 3.8's mapper registers both."""
+    frames = [shared_data_dir / "fern-images" / f"image{i:03d}.png" for i in (0, 1)]
+    if not all(f.is_file() for f in frames):
+        pytest.skip("fern-images are missing")
+    images = tmp_path / "photos"
+    images.mkdir()
+    for i, frame in enumerate(frames):
+        cv2.imwrite(str(images / f"{i}.png"), cv2.imread(str(frame)))
+    result = reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
+                                           stop_after="mapping"))
+    assert result.num_registered == 2 and result.num_points3D > 100

@@ -838,12 +838,19 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     write(old)
     assert stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
-    def dies(path, array):
-        raise OSError("disk full")
+    import os
 
-    monkeypatch.setattr(stereo_outputs, "write_depth_map", dies)
+    real_replace = os.replace
+
+    def dies(src, dst):  # every new file is written; the run dies as the new depth is renamed into place
+        if Path(dst) == ws.depth_map_path("a.png", stage):
+            raise OSError("killed")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", dies)
     with pytest.raises(OSError):
         write(new)
+    assert stereo_outputs.read_provenance(ws, "a.png", stage)["settings"] == new  # renamed before it
     assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(new), (8, 6))
     assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
 
@@ -1022,3 +1029,56 @@ def test_num_views_that_patch_match_cfg_overrides_is_said_once_and_recomputes_no
     res = run_stereo(replace_config(cfg, num_views=3))
     assert sorted(res.processed) == names and all(len(res.sources[n]) == 2 for n in names)
     assert not [r for r in caplog.records if "decides the sources" in r.getMessage()]
+
+
+def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+    """A disk that fills up during `stereo --overwrite` had already cost the old photometric maps: each
+    pass's new files are now written beside the old ones first, and the old go only once all are written."""
+    import errno
+
+    import colmap_pvs.io.files as files_module
+    from colmap_pvs.errors import OutputError
+
+    ws = _copy(synthetic_ws, tmp_path)
+    flags = dict(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                 geom_fill=False)
+    run_stereo(stereo_config(**flags))
+    before = {p: p.read_bytes() for p in (ws / "stereo").rglob("*") if p.is_file()}
+    real = files_module.tempfile.mkstemp
+
+    def full(*args, **kwargs):
+        if Path(kwargs["dir"]).name == "normal_maps":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(files_module.tempfile, "mkstemp", full)
+    with pytest.raises(OutputError, match="No space left on device"):
+        run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5))
+    monkeypatch.undo()
+    after = {p: p.read_bytes() for p in (ws / "stereo").rglob("*") if p.is_file()}
+    run_record = ws / "stereo" / stereo_config_module.CONFIG_FILENAME  # the last run's settings
+    assert after.keys() == before.keys()  # no temporary file left
+    assert {p for p in after if after[p] != before[p]} == {run_record}  # every map and provenance kept
+    assert run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5)).processed
+
+
+def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
+                                                                             tiny_checkpoint, caplog):
+    """Sources all below geom_min_triangulation_angle give an empty geometric map: a WARNING names the
+    image, the angles and what to do (no warning at the default angle)."""
+    ws = _copy(synthetic_ws, tmp_path)
+    flags = dict(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                 geom_fill=False)
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        run_stereo(stereo_config(**flags, geom_min_triangulation_angle=89))
+    warned = [r.getMessage() for r in caplog.records if "geom_min_triangulation_angle" in r.getMessage()]
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    assert len(warned) == len(names) and all(any(repr(n) in m for m in warned) for n in names)
+    assert "median angles:" in warned[0] and "lower --geom_min_triangulation_angle" in warned[0]
+    for name in names:
+        assert not read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.geometric.bin").any()
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        run_stereo(stereo_config(**flags, overwrite=True))
+    assert "geom_min_triangulation_angle" not in caplog.text

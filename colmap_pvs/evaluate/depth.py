@@ -86,7 +86,8 @@ class EvaluateDepthConfig:
         default="{stem}",
         metadata={
             "help": "GT file name (relative to --gt) of an image; {name}: image name, {stem}: image name "
-            "without extension. Without a known extension, .npy/.png/.tif/.tiff are tried in turn"
+            "without extension (then, where none is found, with it: the demo's NAME.EXT.npy). Without a "
+            "known extension, .npy/.png/.tif/.tiff are tried in turn"
         },
     )
     gt_scale: float | None = field(
@@ -312,21 +313,26 @@ def compute_depth_metrics(
 
 
 def find_gt_depth(gt_dir: Path, name: str, pattern: str = "{stem}") -> Path | None:
-    """GT file of image ``name`` in ``gt_dir`` following ``pattern`` (see :class:`EvaluateDepthConfig`)."""
+    """GT file of image ``name`` in ``gt_dir`` following ``pattern`` (see :class:`EvaluateDepthConfig`):
+    a ``{stem}`` pattern that finds nothing is tried again with the whole name (``000.png`` ->
+    ``000.png.npy``, the demo's own layout)."""
     stem = str(Path(name).with_suffix("")) if Path(name).suffix else name
     try:
-        rel = pattern.format(name=name, stem=stem)
+        rels = [pattern.format(name=name, stem=stem)]
+        if "{stem}" in pattern and stem != name:
+            rels.append(pattern.format(name=name, stem=name))
     except (KeyError, IndexError, ValueError) as exc:
         raise ConfigError(
             f"gt_pattern {pattern!r} is not a valid pattern ({exc!r}); use {{name}}/{{stem}}"
         ) from None
-    base = Path(gt_dir) / rel
-    if base.suffix.lower() in GT_EXTENSIONS and base.is_file():
-        return base
-    for ext in GT_EXTENSIONS:  # also NAME.png.npy, as the demo writes its GT
-        candidate = base.with_name(base.name + ext)
-        if candidate.is_file():
-            return candidate
+    for rel in rels:
+        base = Path(gt_dir) / rel
+        if base.suffix.lower() in GT_EXTENSIONS and base.is_file():
+            return base
+        for ext in GT_EXTENSIONS:  # also NAME.png.npy, as the demo writes its GT
+            candidate = base.with_name(base.name + ext)
+            if candidate.is_file():
+                return candidate
     return None
 
 

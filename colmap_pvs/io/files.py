@@ -15,6 +15,7 @@ import hashlib
 import os
 import socket
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import OutputError
@@ -118,6 +119,34 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def write_files_together(files: list[tuple[Path, bytes]],
+                         before_commit: Callable[[], None] | None = None) -> None:
+    """Write every ``(path, data)`` to a temporary file beside its path first (where a full disk or a
+    read-only folder fails: the old files stay as they were and nothing is left behind), then call
+    ``before_commit`` (to drop what the new files replace) and rename each into place in order, so the
+    last one can mark the set done.
+
+    Raises:
+        OutputError: a file could not be written or renamed into place.
+    """
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for path, data in files:
+            staged.append((write_temp_file(path, data), Path(path)))
+        if before_commit is not None:
+            before_commit()
+        while staged:
+            tmp, path = staged[0]
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                raise OutputError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+            staged.pop(0)
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
 
 
 def make_temp_dir(parent: str | os.PathLike, prefix: str, suffix: str = ".tmp") -> Path:

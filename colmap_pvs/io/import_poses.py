@@ -68,7 +68,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import config_to_dict, save_config
+from ..config import check_threads, config_to_dict, save_config
 from ..errors import ConfigError, WorkspaceError
 from .features import extract_features, match_features, resolve_matcher
 from .files import make_temp_dir
@@ -154,6 +154,7 @@ class ImportPosesConfig:
     )
 
     def __post_init__(self) -> None:
+        check_threads("num_threads", self.num_threads, auto=-1)
         if self.frame_step < 1:
             raise ConfigError(f"frame_step must be >= 1, got {self.frame_step}")
         if self.max_images < 0:
@@ -225,7 +226,7 @@ def _pose(cam_from_world: np.ndarray, where: str) -> np.ndarray:
 
 def _read_matrix(path: Path, shape: tuple[int, ...] | None = None) -> np.ndarray:
     try:
-        data = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        data = np.loadtxt(path, dtype=np.float64, ndmin=2, encoding="utf-8-sig")
     except FileNotFoundError:
         raise WorkspaceError(f"{str(path)!r} does not exist") from None
     except ValueError as exc:
@@ -248,7 +249,7 @@ def _read_hololens(folder: Path, offset: float) -> list[KnownCamera]:
     frames_file = folder / "frames.txt"
     if not frames_file.is_file():
         raise WorkspaceError(f"{str(frames_file)!r} does not exist")
-    names = [ln.strip() for ln in frames_file.read_text().splitlines() if ln.strip()]
+    names = [ln.strip() for ln in frames_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()]
     if len(names) != poses.shape[0]:
         raise WorkspaceError(
             f"{str(frames_file)!r} lists {len(names)} frames but {str(folder / 'poses.txt')!r} has "
@@ -271,7 +272,7 @@ def _read_strecha(folder: Path, offset: float) -> list[KnownCamera]:
         raise WorkspaceError(f"no Strecha *.camera files in {str(cam_dir)!r}")
     out = []
     for path in files:
-        rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+        rows = [ln.split() for ln in path.read_text(encoding="utf-8-sig").splitlines() if ln.strip()]
         try:
             nums = [[float(v) for v in r] for r in rows]
         except ValueError as exc:
@@ -295,7 +296,7 @@ def _read_strecha(folder: Path, offset: float) -> list[KnownCamera]:
 
 def _read_json(path: Path, offset: float) -> list[KnownCamera]:
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
     except json.JSONDecodeError as exc:
         raise WorkspaceError(f"{str(path)!r} is not valid JSON: {exc}") from None
     entries = data.get("images") if isinstance(data, dict) else data
@@ -319,7 +320,7 @@ def _read_json(path: Path, offset: float) -> list[KnownCamera]:
 
 def _read_csv(path: Path, offset: float) -> list[KnownCamera]:
     out = []
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:
         for line_no, row in enumerate(csv.reader(f), start=1):
             row = [c.strip() for c in row]
             if not row or not row[0] or row[0].startswith("#"):

@@ -102,6 +102,11 @@ def read_array(path: str | os.PathLike) -> np.ndarray:
 
 def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     """Write ``array`` (``[H, W]`` or ``[H, W, C]``, real numbers) as a COLMAP ``.bin`` file, atomically."""
+    return atomic_write_bytes(path, encode_array(path, array))
+
+
+def encode_array(path: str | os.PathLike, array: np.ndarray) -> bytes:
+    """The bytes of :func:`write_array` (``path`` names the file in errors)."""
     array = np.asarray(array)
     if array.ndim not in (2, 3) or array.size == 0:
         raise ShapeError(
@@ -115,7 +120,7 @@ def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     height, width, channels = array.shape
     header = f"{width}&{height}&{channels}&".encode("ascii")
     payload = np.ascontiguousarray(array.transpose(2, 0, 1), dtype="<f4").tobytes()
-    return atomic_write_bytes(path, header + payload)
+    return header + payload
 
 
 # --------------------------------------------------------------------------- typed maps
@@ -139,6 +144,11 @@ def read_depth_map(path: str | os.PathLike) -> np.ndarray:
 
 def write_depth_map(path: str | os.PathLike, depth: np.ndarray) -> Path:
     """Write a ``[H, W]`` depth map (finite, ``>= 0``, ``0`` = invalid), atomically."""
+    return atomic_write_bytes(path, encode_depth_map(path, depth))
+
+
+def encode_depth_map(path: str | os.PathLike, depth: np.ndarray) -> bytes:
+    """The bytes of :func:`write_depth_map`, checked the same way."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ShapeError(f"cannot write depth map {str(path)!r}: expected [H, W], got shape {depth.shape}")
@@ -148,7 +158,7 @@ def write_depth_map(path: str | os.PathLike, depth: np.ndarray) -> Path:
             f"refusing to write depth map {str(path)!r}: {int((depth < 0).sum())} negative depths "
             f"(min {float(depth.min())}); use 0 for invalid pixels"
         )
-    return write_array(path, depth)
+    return encode_array(path, depth)
 
 
 def read_normal_map(path: str | os.PathLike) -> np.ndarray:
@@ -165,6 +175,11 @@ def write_normal_map(path: str | os.PathLike, normals: np.ndarray) -> Path:
 
     COLMAP's fusion expects unit normals that face the camera (``dot(n, x_cam) < 0``).
     """
+    return atomic_write_bytes(path, encode_normal_map(path, normals))
+
+
+def encode_normal_map(path: str | os.PathLike, normals: np.ndarray) -> bytes:
+    """The bytes of :func:`write_normal_map`, checked the same way."""
     normals = np.asarray(normals, dtype=np.float32)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise ShapeError(
@@ -178,7 +193,7 @@ def write_normal_map(path: str | os.PathLike, normals: np.ndarray) -> Path:
             f"refusing to write normal map {str(path)!r}: {int(bad.sum())} normals are neither unit nor zero "
             f"(norms range {float(norm[bad].min()):.4g}..{float(norm[bad].max()):.4g})"
         )
-    return write_array(path, normals)
+    return encode_array(path, normals)
 
 
 def fusion_intrinsics(

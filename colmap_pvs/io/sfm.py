@@ -53,6 +53,18 @@ def incremental_mapping(
             models = pycolmap.incremental_mapping(
                 str(database), str(image_dir), str(tmp), options=options, next_image_callback=registered
             )
+            if not models and options.triangulation.ignore_two_view_tracks:
+                # pycolmap's mapper ignores the points only two images see, even for its initial pair: two
+                # photos (or an initial pair without a third view) then triangulate nothing, where
+                # COLMAP 3.8's mapper registers them. Tried again with those points.
+                logger.info("SfM: no model without the points only two images see; trying again with them")
+                options.triangulation.ignore_two_view_tracks = False
+                shutil.rmtree(tmp, ignore_errors=True)
+                tmp.mkdir()
+                bar.reset()
+                models = pycolmap.incremental_mapping(
+                    str(database), str(image_dir), str(tmp), options=options, next_image_callback=registered
+                )
         finally:
             bar.close()
         if not models:

@@ -360,7 +360,7 @@ def read_patch_match_cfg(path: str | os.PathLike) -> dict[str, SourceSpec]:
     """
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a BOM (Windows editors) is skipped
     except FileNotFoundError:
         raise WorkspaceError(f"patch-match config {str(path)!r} does not exist") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -565,6 +565,8 @@ def read_fusion_cfg(path: str | os.PathLike) -> list[str]:
     """Image names listed in ``fusion.cfg`` (blank lines skipped)."""
     path = Path(path)
     try:
-        return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        return [line.strip() for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()]
     except FileNotFoundError:
         raise WorkspaceError(f"fusion config {str(path)!r} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise WorkspaceError(f"cannot read fusion config {str(path)!r}: {exc}") from None

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import ClassVar, Literal
 
 from ..completion import SEGMENT_MIN_INLIERS, SEGMENT_MIN_PIXELS
-from ..config import check_int_fields, check_range, config_flags, config_to_flags
+from ..config import check_int_fields, check_range, check_threads, config_flags, config_to_flags
 from ..errors import ConfigError
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_default.pt"
@@ -247,7 +247,8 @@ class RayConfig:
 
     def __post_init__(self) -> None:
         check_int_fields(self, "ray_")
-        for name, low in (("workers", 0), ("worker_threads", 1), ("worker_memory", 0.0),
+        check_threads("ray_worker_threads", self.worker_threads, auto=None)
+        for name, low in (("workers", 0), ("worker_memory", 0.0),
                           ("max_retries", 0), ("task_timeout", 0.0)):
             check_range(f"ray_{name}", getattr(self, name), low=low)
 
@@ -295,7 +296,7 @@ class StereoConfig:
 
     def __post_init__(self) -> None:  # bad values are refused where they enter
         check_int_fields(self)
-        check_range("threads", self.threads, low=0)
+        check_threads("threads", self.threads, auto=0)
         check_range("min_sources", self.min_sources, low=1)
         kind = self.adapt.pseudo_labels
         needs_fill = kind == "filled" and not self.completion.enabled

@@ -15,6 +15,7 @@ its sources' photometric maps, too).
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,8 @@ from .outputs import (
     write_seeds,
 )
 from .photometric import network_maps
+
+logger = logging.getLogger(__name__)
 
 #: Relative deviation from the local plane at which the geometric confidence falls by ``1 / e``.
 GEOM_DEVIATION_SCALE = 0.02
@@ -213,12 +216,33 @@ class Checked:
     conf: np.ndarray | None = None
 
 
-def _kept(ctx: StereoContext, ref: SourceMaps, res, vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` that the check ``res`` keeps: confirmed by
-    ``geom_min_consistent`` sources from ``geom_min_triangulation_angle`` or more, averaged over them
-    (``geom_average_depth``), with their geometric confidence (calibrated) of at least
-    ``geom_min_confidence``."""
+def _warn_if_every_source_is_too_close(ctx: StereoContext, name: str, sources: list[str], ref: SourceMaps,
+                                       res) -> None:
+    """One WARNING for a reference that every source sees from less than ``geom_min_triangulation_angle``
+    (the median over its pixels): no source can confirm a pixel, so its geometric map is (nearly) empty."""
+    min_angle = ctx.config.geometric.min_triangulation_angle
+    valid = ref.depth > 0
+    if min_angle <= 0 or not sources or not valid.any():
+        return
+    seen = [valid & res.checked[s] for s in range(len(sources))]
+    angles = [float(np.median(res.angle[s][m])) if m.any() else 0.0 for s, m in enumerate(seen)]
+    if max(angles) >= min_angle:
+        return
+    listed = ", ".join(f"{src} {a:.2g}" for src, a in zip(sources, angles, strict=True))
+    logger.warning("geometric pass: every source of %r sees it from less than geom_min_triangulation_angle "
+                   "%g degrees (median angles: %s), so its geometric map is empty: lower "
+                   "--geom_min_triangulation_angle or give it sources farther away (patch-match.cfg)",
+                   name, min_angle, listed)
+
+
+def _kept(ctx: StereoContext, name: str, sources: list[str], ref: SourceMaps, res,
+          vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` (reference ``name``) that the check ``res``
+    against ``sources`` keeps: confirmed by ``geom_min_consistent`` sources from
+    ``geom_min_triangulation_angle`` or more, averaged over them (``geom_average_depth``), with their
+    geometric confidence (calibrated) of at least ``geom_min_confidence``."""
     cfg = ctx.config
+    _warn_if_every_source_is_too_close(ctx, name, sources, ref, res)
     confirm = res.confirming(cfg.geometric.min_triangulation_angle)  # agreeing, from far enough apart
     keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geometric.min_consistent)
     depth = res.mean_depth(ref.depth, confirm) if cfg.geometric.average_depth else ref.depth.copy()
@@ -243,7 +267,7 @@ def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: b
     ref, srcs, vis = _load_check(ctx, name, setup)
     check = _check_kwargs(ctx)
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    depth, conf = _kept(ctx, ref, res, vis) if kept else (None, None)
+    depth, conf = _kept(ctx, name, setup.sources, ref, res, vis) if kept else (None, None)
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
@@ -346,7 +370,7 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         reestimated = True
         t0 = time.perf_counter()
         res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-        depth, conf = _kept(ctx, ref, res, vis)
+        depth, conf = _kept(ctx, name, sources, ref, res, vis)
         del res
         timings["consistency"] = time.perf_counter() - t0
     h, w = depth.shape

@@ -19,8 +19,11 @@ import numpy as np
 
 from ..config import config_to_dict
 from ..errors import MapFormatError
-from ..io.files import atomic_write_bytes, file_sha256
+from ..io.files import atomic_write_bytes, file_sha256, write_files_together
 from ..io.maps import (
+    encode_array,
+    encode_depth_map,
+    encode_normal_map,
     read_array,
     read_depth_map,
     read_normal_map,
@@ -198,8 +201,12 @@ def read_json(path: Path) -> dict | None:
         return None
 
 
+def json_bytes(payload: dict) -> bytes:
+    return (json.dumps(payload, indent=1) + "\n").encode()
+
+
 def write_json(path: Path, payload: dict) -> None:
-    atomic_write_bytes(path, (json.dumps(payload, indent=1) + "\n").encode())
+    atomic_write_bytes(path, json_bytes(payload))
 
 
 def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
@@ -227,36 +234,52 @@ def is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: t
     return depth.shape == (size[1], size[0])
 
 
+def provenance_record(settings: dict, extra: dict) -> dict:
+    return {"fingerprint": fingerprint(settings), "settings": settings, **extra}
+
+
 def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, extra: dict) -> None:
-    write_json(provenance_path(ws, name, stage), {"fingerprint": fingerprint(settings), "settings": settings,
-                                                  **extra})
+    write_json(provenance_path(ws, name, stage), provenance_record(settings, extra))
 
 
 def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
                 depth_range, timings, vis=None, sources=(), seeds=None, seed_fingerprint=None) -> None:
-    """Write one pass's maps (an old depth removed first, the new one last: it marks the pass done),
-    then its previews.
+    """Write one pass's maps, then its previews: every file is written beside its place first (a full
+    disk leaves the old maps as they were), then the old depth is removed and the new files renamed
+    into place, the depth last (it marks the pass done).
 
     ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``,
     ``seeds`` ``[h, w]`` (geometric pass only) to :func:`seed_map_path`. Preview
     names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
     t0 = time.perf_counter()
-    _set_aside_colmaps_maps(ws, name, stage)
-    # The old depth goes first: new provenance beside an old depth would look done after a crash.
-    ws.depth_map_path(name, stage).unlink(missing_ok=True)
-    if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
-        confirm_provenance_path(ws, name).unlink(missing_ok=True)
-        confirm_map_path(ws, name).unlink(missing_ok=True)
-    write_array(ws.confidence_map_path(name, stage), conf.astype(np.float32))
+    files = [(ws.confidence_map_path(name, stage), encode_array(ws.confidence_map_path(name, stage),
+                                                                conf.astype(np.float32)))]
     if vis is not None:
-        write_array(visibility_map_path(ws, name),
-                    np.ascontiguousarray(vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))
-    if seeds is not None:
-        write_seeds(ws, name, seeds, seed_fingerprint)
-    write_normal_map(ws.normal_map_path(name, stage), normals)
-    write_provenance(ws, name, stage, settings, extra)
-    write_depth_map(ws.depth_map_path(name, stage), depth)  # last: marks the pass done
+        vis_path = visibility_map_path(ws, name)
+        files.append((vis_path, encode_array(vis_path, np.ascontiguousarray(vis.transpose(1, 2, 0))
+                                             if vis.shape[0] else np.zeros((1, 1, 1)))))
+    if seeds is not None:  # the seed map, then its fingerprint (which marks it current)
+        seed_path = seed_map_path(ws, name)
+        files.append((seed_path, encode_array(seed_path, seeds.astype(np.float32))))
+        files.append((seed_provenance_path(ws, name), json_bytes({"fingerprint": seed_fingerprint})))
+    normal_path = ws.normal_map_path(name, stage)
+    files.append((normal_path, encode_normal_map(normal_path, normals)))
+    files.append((provenance_path(ws, name, stage), json_bytes(provenance_record(settings, extra))))
+    depth_path = ws.depth_map_path(name, stage)
+    files.append((depth_path, encode_depth_map(depth_path, depth)))  # last: marks the pass done
+
+    def drop_old() -> None:  # once every new file is on disk
+        _set_aside_colmaps_maps(ws, name, stage)
+        # The old depth goes first: new provenance beside an old depth would look done after a crash.
+        depth_path.unlink(missing_ok=True)
+        if seeds is not None:
+            seed_provenance_path(ws, name).unlink(missing_ok=True)
+        if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
+            confirm_provenance_path(ws, name).unlink(missing_ok=True)
+            confirm_map_path(ws, name).unlink(missing_ok=True)
+
+    write_files_together(files, before_commit=drop_old)
     timings["writes"] = time.perf_counter() - t0
     if previews:
         t0 = time.perf_counter()
@@ -367,14 +390,17 @@ def remove_filled(ws: Workspace, name: str) -> None:
 
 def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previews, depth_range,
                   timings) -> None:
-    """Write the dense completion: confidence, provenance, then the depth (which marks it done)."""
+    """Write the dense completion: confidence, provenance, then the depth (which marks it done), each
+    beside its place first, so that a full disk leaves the old completion as it was."""
     t0 = time.perf_counter()
-    # The old depth goes first: new provenance beside an old depth would look done after a crash
-    # (no other pass reads the completion, so nothing can miss it meanwhile).
-    ws.depth_map_path(name, "filled").unlink(missing_ok=True)
-    write_array(ws.confidence_map_path(name, "filled"), conf.astype(np.float32))
-    write_provenance(ws, name, "filled", settings, extra)
-    write_depth_map(ws.depth_map_path(name, "filled"), depth)
+    conf_path, depth_path = ws.confidence_map_path(name, "filled"), ws.depth_map_path(name, "filled")
+    # The old depth goes once the new files are written, before they are renamed into place: new
+    # provenance beside an old depth would look done after a crash.
+    record = json_bytes(provenance_record(settings, extra))
+    write_files_together([(conf_path, encode_array(conf_path, conf.astype(np.float32))),
+                          (provenance_path(ws, name, "filled"), record),
+                          (depth_path, encode_depth_map(depth_path, depth))],
+                         before_commit=lambda: depth_path.unlink(missing_ok=True))
     timings["writes"] = time.perf_counter() - t0
     if previews:
         write_previews(ws, name, "filled", depth, depth_range)

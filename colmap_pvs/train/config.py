@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from ..config import check_threads
 from ..errors import ConfigError
 from ..model import PVSNetConfig
 from ..synthetic import SyntheticDatasetConfig
@@ -177,7 +178,7 @@ class TrainConfig:
         need(self.grad_clip_norm >= 0, f"grad_clip_norm must be >= 0, got {self.grad_clip_norm}")
         need(self.sample_grouping >= 1, f"sample_grouping must be >= 1, got {self.sample_grouping}")
         need(self.num_workers >= 0, f"num_workers must be >= 0, got {self.num_workers}")
-        need(self.torch_threads >= 0, f"torch_threads must be >= 0, got {self.torch_threads}")
+        check_threads("torch_threads", self.torch_threads, auto=0)
         need(
             self.checkpoint_every_seconds >= 0,
             f"checkpoint_every_seconds must be >= 0, got {self.checkpoint_every_seconds}",

@@ -357,7 +357,7 @@ def read_mvsnet_cam(path: str | Path) -> MVSNetCamera:
     """Parse an MVSNet ``*_cam.txt`` file (layout in the module docstring)."""
     path = Path(path)
     try:
-        tokens = path.read_text().split()
+        tokens = path.read_text(encoding="utf-8-sig").split()
     except FileNotFoundError:
         raise MVSNetFormatError(f"cam file {str(path)!r} does not exist") from None
     try:
@@ -420,7 +420,7 @@ def read_pair_file(path: str | Path) -> dict[int, list[tuple[int, float]]]:
     """Parse ``pair.txt``: ``{ref_id: [(src_id, score), ...]}`` in file order."""
     path = Path(path)
     try:
-        tokens = path.read_text().split()
+        tokens = path.read_text(encoding="utf-8-sig").split()
     except FileNotFoundError:
         raise MVSNetFormatError(f"pair file {str(path)!r} does not exist") from None
     try:
