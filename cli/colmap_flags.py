@@ -3,10 +3,9 @@
 A script that runs ``colmap patch_match_stereo --workspace_path dense --workspace_format COLMAP
 --PatchMatchStereo.geom_consistency true`` keeps working after swapping the binary for
 ``colmap-pvs``. Flags with a meaning here are translated to :class:`colmap_pvs.stereo.StereoConfig`
-fields (the geometric filter's thresholds, ...); flags of COLMAP's patch-match optimiser (window,
-NCC, sampling, ...) have no meaning for a learned network and are named in one warning, never dropped
-silently, as is a fixed depth range (``depth_min``/``depth_max`` >= 0: each image's range comes from
-its sparse points, COLMAP's default).
+fields (the fixed depth range, the geometric filter's thresholds, ...); flags of COLMAP's patch-match
+optimiser (window, NCC, sampling, ...) have no meaning for a learned network and are named in one
+warning, never dropped silently.
 """
 
 from __future__ import annotations
@@ -70,10 +69,23 @@ def _geom_max_cost(flag: str, text: str) -> dict[str, Any]:
     return {"geom_max_reproj_error": _float(flag, text)}
 
 
-def _depth_bound(flag: str, text: str) -> dict[str, Any] | None:
-    """COLMAP's -1 (each image's range from its sparse points) is what colmap-pvs does; a fixed bound
-    has no equivalent (ignored with a warning)"""
-    return {} if _float(flag, text) < 0 else None
+def _depth_bound(flag: str, text: str) -> dict[str, Any]:
+    """with the other bound, = --depth_range MIN MAX (COLMAP's -1, from the sparse points, is our default)"""
+    return {}  # the pair is translated together, by translate_colmap_flags
+
+
+def _depth_range(given: dict[str, str]) -> dict[str, Any]:
+    """``--depth_range`` from COLMAP's ``depth_min``/``depth_max``: COLMAP uses a fixed range only when
+    both are >= 0; a negative one (its default, -1) keeps the ranges from the sparse points."""
+    names = [f"PatchMatchStereo.depth_{k}" for k in ("min", "max")]
+    bounds = {n: _float(n, given[n]) for n in names if n in given}
+    if not bounds or any(v < 0 for v in bounds.values()):
+        return {}
+    if len(bounds) == 1:
+        (flag, value), = bounds.items()
+        other = next(n for n in names if n != flag)
+        raise ConfigError(f"--{flag} {value:g} needs --{other} too: a fixed depth range takes both bounds")
+    return {"depth_range": (bounds[names[0]], bounds[names[1]])}
 
 
 def _num_threads(flag: str, text: str) -> dict[str, Any]:
@@ -120,7 +132,7 @@ def _project_path(flag: str, text: str) -> dict[str, Any]:
 
 
 #: flag -> translation into StereoConfig fields (``None``: accepted, no meaning here).
-PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any] | None] | None] = {
+PATCH_MATCH_STEREO_FLAGS: dict[str, Callable[[str, str], dict[str, Any]] | None] = {
     "workspace_format": _workspace_format,
     "pmvs_option_name": None,
     "config_path": _config_path,
@@ -169,6 +181,16 @@ def add_colmap_flags(parser: argparse.ArgumentParser, listed: bool = True) -> No
                            help=help_text)
 
 
+def _same(own: Any, value: Any) -> bool:
+    """Whether our flag's value (as parsed: text for a list) equals a translated value."""
+    if isinstance(value, tuple):
+        try:
+            return tuple(float(v) for v in own) == value
+        except (TypeError, ValueError):
+            return False
+    return own == value
+
+
 def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
     """StereoConfig values from the COLMAP flags in ``args``; warns naming the ignored ones.
 
@@ -181,16 +203,16 @@ def translate_colmap_flags(args: argparse.Namespace) -> dict[str, Any]:
     ignored = []
     for flag, text in given.items():
         translate = PATCH_MATCH_STEREO_FLAGS[flag]
-        items = None if translate is None else translate(flag, text)
-        if items is None:
+        if translate is None:
             ignored.append(f"--{flag}")
         else:
-            translated.append((f"{flag} {text}", items))
+            translated.append((f"{flag} {text}", translate(flag, text)))
+    translated.append(("PatchMatchStereo.depth_min/depth_max", _depth_range(given)))
     values: dict[str, Any] = {}
     for given_as, items in translated:
         for key, value in items.items():
             own = getattr(args, key, None)
-            if hasattr(args, key) and own != value:
+            if hasattr(args, key) and not _same(own, value):
                 raise ConfigError(f"--{given_as} contradicts --{key} {own}; give only one of them")
             values[key] = value
     if ignored:

@@ -74,17 +74,17 @@ def test_colmap_patch_match_stereo_flags_translate(caplog):
 
 
 def test_colmap_flags_with_an_equivalent_are_translated_into_the_config(caplog):
-    """COLMAP's geometric filter thresholds have equivalents: they change the config (good values, not
-    only bad ones) and are not named as ignored; a fixed depth range has none (named), COLMAP's -1 (each
-    image's range from its sparse points) is what colmap-pvs does (accepted silently)."""
+    """COLMAP's geometric filter thresholds and its fixed depth range have equivalents: they change the
+    config (good values, not only bad ones) and are not named as ignored."""
     from colmap_pvs.cli.main import _build_config
     from colmap_pvs.stereo import StereoConfig
+    from colmap_pvs.stereo.config import PhotometricConfig
 
     argv = ["patch_match_stereo", "--workspace_path", "d",
             "--PatchMatchStereo.filter_min_num_consistent", "4",
             "--PatchMatchStereo.filter_min_triangulation_angle", "1.5",
             "--PatchMatchStereo.filter_geom_consistency_max_cost", "1",
-            "--PatchMatchStereo.depth_min", "-1", "--PatchMatchStereo.depth_max", "-1",
+            "--PatchMatchStereo.depth_min", "0.5", "--PatchMatchStereo.depth_max", "12",
             "--PatchMatchStereo.num_samples", "20"]
     args = build_parser().parse_args(argv)
     with caplog.at_level("WARNING"):
@@ -92,19 +92,23 @@ def test_colmap_flags_with_an_equivalent_are_translated_into_the_config(caplog):
             setattr(args, key, value)
     config = _build_config(StereoConfig, args)
     assert config.geometric.min_consistent == 4 and config.geometric.min_triangulation_angle == 1.5
-    assert config.geometric.max_reproj_error == 1.0
+    assert config.geometric.max_reproj_error == 1.0 and config.photometric.depth_range == (0.5, 12.0)
     assert "num_samples" in caplog.text
     assert not any(k in caplog.text for k in ("filter_min", "filter_geom", "depth_m"))
-    caplog.clear()
-    fixed = ["--PatchMatchStereo.depth_min", "0.5", "--PatchMatchStereo.depth_max", "12"]
-    args = build_parser().parse_args(["stereo", "--workspace_path", "d", *fixed])
-    with caplog.at_level("WARNING"):
-        assert translate_colmap_flags(args) == {}
-    assert "--PatchMatchStereo.depth_min, --PatchMatchStereo.depth_max" in caplog.text
-    args = build_parser().parse_args(["stereo", "--workspace_path", "d", "--geom_min_consistent", "2",
-                                      "--PatchMatchStereo.filter_min_num_consistent", "3"])
-    with pytest.raises(ConfigError, match="contradicts --geom_min_consistent 2"):
+    # COLMAP's -1 (the ranges from the sparse points) is our default; one bound alone is refused
+    args = build_parser().parse_args(["stereo", "--workspace_path", "d", "--PatchMatchStereo.depth_min", "-1",
+                                      "--PatchMatchStereo.depth_max", "-1"])
+    assert translate_colmap_flags(args) == {}
+    args = build_parser().parse_args(["stereo", "--workspace_path", "d", "--PatchMatchStereo.depth_max", "3"])
+    with pytest.raises(ConfigError, match="depth_max 3 needs --PatchMatchStereo.depth_min"):
         translate_colmap_flags(args)
+    args = build_parser().parse_args(["stereo", "--workspace_path", "d", "--depth_range", "1", "2",
+                                      "--PatchMatchStereo.depth_min", "1",
+                                      "--PatchMatchStereo.depth_max", "3"])
+    with pytest.raises(ConfigError, match="contradicts --depth_range"):
+        translate_colmap_flags(args)
+    with pytest.raises(ConfigError, match="depth_range"):
+        PhotometricConfig(depth_range=(2.0, 1.0))
 
 
 def test_colmap_flags_reach_the_config(tmp_path, capsys):

@@ -1031,6 +1031,14 @@ def test_num_views_that_patch_match_cfg_overrides_is_said_once_and_recomputes_no
     assert not [r for r in caplog.records if "decides the sources" in r.getMessage()]
 
 
+def test_a_fixed_depth_range_is_every_references_range(synthetic_ws, tiny_checkpoint):
+    """``--depth_range`` (COLMAP's depth_min/depth_max) replaces each reference's range from its points."""
+    ctx = stereo_context.prepare_stereo(stereo_config(workspace_path=synthetic_ws, checkpoint=tiny_checkpoint,
+                                                      depth_range=[0.5, 9]))
+    assert ctx.selection.references
+    assert {entry.depth_range for entry in ctx.selection.references.values()} == {(0.5, 9.0)}
+
+
 def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
     """A disk that fills up during `stereo --overwrite` had already cost the old photometric maps: each
     pass's new files are now written beside the old ones first, and the old go only once all are written."""

@@ -55,6 +55,13 @@ class PhotometricConfig:
     max_image_size: int = field(
         default=640, metadata={"help": "longest image side for inference; <= 0 keeps full size"}
     )
+    depth_range: tuple[float, ...] = field(
+        default=(),
+        metadata={  # the maps' provenance holds the range used, so the flag itself is not in it
+            "provenance": False,
+            "help": "MIN MAX: one depth range for every reference (default: each from its sparse points)",
+        },
+    )
     network_scale: float = field(
         default=0.8,
         metadata={
@@ -102,6 +109,13 @@ class PhotometricConfig:
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
         check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
         check_range("network_min_size", self.network_min_size, low=16)
+        try:
+            object.__setattr__(self, "depth_range", tuple(float(v) for v in self.depth_range))
+        except (TypeError, ValueError):
+            raise ConfigError(f"depth_range must be two numbers MIN MAX, got {self.depth_range!r}") from None
+        lo_hi = self.depth_range
+        if lo_hi and not (len(lo_hi) == 2 and 0 < lo_hi[0] < lo_hi[1] < float("inf")):
+            raise ConfigError(f"depth_range must be two numbers 0 < MIN < MAX, got {list(self.depth_range)}")
         if 0 < self.max_image_size < 16:
             raise ConfigError(f"max_image_size must be <= 0 (full size) or >= 16, got {self.max_image_size}")
 

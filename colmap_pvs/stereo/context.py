@@ -8,7 +8,7 @@ import logging
 import threading
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -388,6 +388,11 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
         model_sparse,
         ViewSelectionConfig(num_views=config.photometric.num_views),
     )
+    if config.photometric.depth_range:  # one range for all (COLMAP's depth_min/depth_max)
+        fixed = tuple(config.photometric.depth_range)
+        selection = replace(selection, references={
+            name: replace(entry, depth_range=fixed) for name, entry in selection.references.items()
+        })
     refs = choose_references(ws, model_sparse)
     return StereoContext(
         config=config,
