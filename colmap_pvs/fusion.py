@@ -51,9 +51,7 @@ COLMAP's layout (:mod:`colmap_pvs.io.ply`), both written atomically; COLMAP's
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import os
 import shutil
 import time
 from collections import OrderedDict
@@ -69,12 +67,13 @@ from .config import save_config
 from .errors import ConfigError, MapFormatError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.colmap_tools import COLMAP_DEFAULTS, parse_colmap_options
-from .io.files import file_sha256, files_state_sha256, make_temp_dir
+from .io.files import make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair
 from .io.workspace import (
     Workspace,
+    fusion_inputs_sha256,
     load_workspace,
     read_fusion_cfg,
     read_patch_match_cfg,
@@ -87,8 +86,7 @@ from .types import SparseModel
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "fusion_inputs_sha256",
-           "parse_colmap_options"]
+__all__ = ["COLMAP_DEFAULTS", "FuseConfig", "FuseResult", "fuse", "parse_colmap_options"]
 
 DEFAULT_OUTPUT_NAME = "fused.ply"
 CONFIG_SUFFIX = ".fuse_config.json"
@@ -576,19 +574,6 @@ def _fuse_colmap(config: FuseConfig, ws: Workspace, names: list[str], result: Fu
 
 
 # --------------------------------------------------------------------------- entry point
-
-
-def fusion_inputs_sha256(workspace_path: str | os.PathLike) -> str:
-    """What ``fuse`` reads from the workspace: the images, the sparse model and the depth, normal and
-    confidence maps by file size and time (:func:`files_state_sha256`), ``stereo/fusion.cfg`` and
-    ``patch-match.cfg`` by content. A cloud whose record holds another value was fused from other maps."""
-    ws = Workspace(Path(workspace_path))
-    files = files_state_sha256([ws.images_dir, ws.sparse_dir, ws.depth_maps_dir, ws.normal_maps_dir,
-                                ws.stereo_dir / "confidence_maps"])
-    digest = hashlib.sha256(files.encode())
-    for cfg in (ws.fusion_cfg, ws.patch_match_cfg):
-        digest.update(file_sha256(cfg).encode() if cfg.is_file() else b"none")
-    return digest.hexdigest()
 
 
 def _no_points_error(config: FuseConfig, ws: Workspace, names: list[str],

@@ -40,7 +40,7 @@ from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, file_sha256, files_state_sha256
 from .io.images import check_image_file, check_image_format
-from .io.workspace import set_aside_foreign_output
+from .io.workspace import fusion_inputs_sha256, set_aside_foreign_output
 from .stereo.config import FORMAT_VERSIONS, StereoConfig, map_settings
 
 logger = logging.getLogger(__name__)
@@ -507,7 +507,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
 def _reconstruct(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, result: ReconstructResult
 ) -> None:
-    from .fusion import FuseConfig, fuse, fusion_inputs_sha256
+    from .fusion import FuseConfig, fuse
     from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
     from .io.sfm import model_counts
     from .io.workspace import UndistortConfig, detect_workspace, undistort

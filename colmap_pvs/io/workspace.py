@@ -35,13 +35,14 @@ import pycolmap
 
 from ..errors import ConfigError, OutputError, WorkspaceError
 from ..types import SparseModel
-from .files import atomic_write_bytes, make_temp_dir
+from .files import atomic_write_bytes, file_sha256, files_state_sha256, make_temp_dir
 from .images import check_image_file, read_image_size
 from .sparse import find_model_files, read_sparse_model, replace_directory
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "fusion_inputs_sha256",
     "CFG_BACKUP_SUFFIX",
     "WRITTEN_RECORD",
     "move_aside",
@@ -570,3 +571,16 @@ def read_fusion_cfg(path: str | os.PathLike) -> list[str]:
         raise WorkspaceError(f"fusion config {str(path)!r} does not exist") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise WorkspaceError(f"cannot read fusion config {str(path)!r}: {exc}") from None
+
+
+def fusion_inputs_sha256(workspace_path: str | os.PathLike) -> str:
+    """What ``fuse`` reads from the workspace: the images, the sparse model and the depth, normal and
+    confidence maps by file size and time (:func:`files_state_sha256`), ``stereo/fusion.cfg`` and
+    ``patch-match.cfg`` by content. A cloud whose record holds another value was fused from other maps."""
+    ws = Workspace(Path(workspace_path))
+    files = files_state_sha256([ws.images_dir, ws.sparse_dir, ws.depth_maps_dir, ws.normal_maps_dir,
+                                ws.stereo_dir / "confidence_maps"])
+    digest = hashlib.sha256(files.encode())
+    for cfg in (ws.fusion_cfg, ws.patch_match_cfg):
+        digest.update(file_sha256(cfg).encode() if cfg.is_file() else b"none")
+    return digest.hexdigest()
