@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import sys
 from pathlib import Path
 
@@ -26,11 +28,48 @@ def load_tool(name: str):
     return module
 
 
+#: Audit events that change a file or folder (``open``: only for writing), and their path arguments.
+_WRITE_EVENTS = {"os.mkdir": (0,), "os.rename": (0, 1), "os.remove": (0,), "os.rmdir": (0,),
+                 "os.symlink": (1,), "os.link": (1,), "os.truncate": (0,), "os.chmod": (0,), "os.chown": (0,),
+                 "os.utime": (0,), "shutil.rmtree": (0,), "shutil.copyfile": (1,), "shutil.copytree": (1,)}
+_WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
+
+
+def _refuse_writes_under(root: Path):
+    """An audit hook that makes ``root`` read-only for this process, as it is for a user without write
+    access (the tests may run as root): every write, folder made, rename or removal under it raises
+    PermissionError, which the library must handle as it does on a read-only file system."""
+    top = os.path.realpath(root)
+
+    def inside(path) -> bool:
+        if isinstance(path, int) or path is None:
+            return False
+        full = os.path.realpath(os.fsdecode(path))
+        return full == top or full.startswith(top + os.sep)
+
+    def hook(event: str, args: tuple) -> None:
+        if event == "open":
+            path, mode, flags = args
+            writes = any(c in mode for c in "wax+") if isinstance(mode, str) else bool(flags & _WRITE_FLAGS)
+            paths = (path,) if writes else ()
+        else:
+            paths = tuple(args[i] for i in _WRITE_EVENTS.get(event, ()) if i < len(args))
+        for path in paths:
+            if inside(path):
+                raise PermissionError(errno.EACCES, "read-only to the tests", os.fsdecode(path))
+
+    return hook
+
+
 @pytest.fixture(scope="session")
 def shared_data_dir() -> Path:
-    """``../shared/data`` next to the repository (real captures; read-only). Skips if absent."""
+    """``../shared/data`` next to the repository (real captures; read-only, also to a test run as root:
+    writes under it raise PermissionError). Skips if absent."""
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is missing")
+    if not getattr(sys, "_colmap_pvs_shared_data_guard", False):  # audit hooks stay for the process
+        sys.addaudithook(_refuse_writes_under(SHARED_DATA))
+        sys._colmap_pvs_shared_data_guard = True
     return SHARED_DATA
 
 

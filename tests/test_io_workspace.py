@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -416,6 +417,30 @@ def test_resize_image_keeps_pixel_centre_geometry() -> None:
         resize_image(np.zeros((0, 3)), 10)
 
 
-def test_statue_patch_match_is_read_only_safe(statue_workspace: Path) -> None:
-    ws = detect_workspace(statue_workspace)  # must not fail on a read-only workspace
-    assert read_sparse_model(ws.sparse_dir) is not None
+def _tree(root: Path) -> dict[str, tuple[bool, int, int]]:
+    """Every path under ``root``: (is a folder, size, mtime)."""
+    return {str(p.relative_to(root)): (p.is_dir(), p.stat().st_size, p.stat().st_mtime_ns)
+            for p in root.rglob("*")}
+
+
+def test_statue_patch_match_is_read_only_safe(statue_workspace: Path, caplog) -> None:
+    """COLMAP's own workspace, read-only (the ``shared_data_dir`` fixture refuses writes under it, also to
+    root): detected with a warning that the stereo folders could not be made; its sparse model,
+    patch-match.cfg and fusion.cfg read as COLMAP wrote them; nothing under it changed."""
+    before = _tree(statue_workspace)
+    with pytest.raises(PermissionError):  # the guard is on
+        (statue_workspace / "stereo" / "probe").mkdir()
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs"):
+        ws = detect_workspace(statue_workspace)
+    assert [r for r in caplog.records if "could not create the stereo folders" in r.getMessage()]
+    model = read_sparse_model(ws.sparse_dir)
+    lines = [line.strip() for line in ws.patch_match_cfg.read_text().splitlines() if line.strip()]
+    expected = {}
+    for reference, sources in zip(lines[0::2], lines[1::2], strict=True):
+        items = [item.strip() for item in sources.split(",")]
+        expected[reference] = (SourceSpec("auto", (), int(items[1])) if items[0] == "__auto__" else
+                               SourceSpec("explicit", tuple(items), len(items)))
+    assert len(expected) >= 3 and read_patch_match_cfg(ws.patch_match_cfg) == expected
+    assert set(expected) <= set(model.image_ids_by_name)
+    assert set(read_fusion_cfg(ws.fusion_cfg)) <= set(model.image_ids_by_name)
+    assert _tree(statue_workspace) == before
