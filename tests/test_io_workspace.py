@@ -423,16 +423,27 @@ def _tree(root: Path) -> dict[str, tuple[bool, int, int]]:
             for p in root.rglob("*")}
 
 
-def test_statue_patch_match_is_read_only_safe(statue_workspace: Path, caplog) -> None:
-    """COLMAP's own workspace, read-only (the ``shared_data_dir`` fixture refuses writes under it, also to
-    root): detected with a warning that the stereo folders could not be made; its sparse model,
-    patch-match.cfg and fusion.cfg read as COLMAP wrote them; nothing under it changed."""
+def test_statue_patch_match_is_read_only_safe(statue_workspace: Path, tmp_path, read_only, caplog) -> None:
+    """COLMAP's own workspace, read-only (the tests refuse writes under the shared data, also as root):
+    detected, its sparse model, patch-match.cfg and fusion.cfg read as COLMAP wrote them, nothing under it
+    changed. The same workspace as a user has it before any stereo run (no map folders), read-only: the
+    folders that cannot be made are named in a warning."""
     before = _tree(statue_workspace)
     with pytest.raises(PermissionError):  # the guard is on
         (statue_workspace / "stereo" / "probe").mkdir()
+    fresh = tmp_path / "statue"
+    (fresh / "stereo").mkdir(parents=True)
+    for folder in ("images", "sparse"):
+        (fresh / folder).symlink_to(statue_workspace / folder, target_is_directory=True)
+    for name in ("patch-match.cfg", "fusion.cfg"):
+        shutil.copy(statue_workspace / "stereo" / name, fresh / "stereo" / name)
+    read_only(fresh)
+    fresh_before = _tree(fresh)
     with caplog.at_level(logging.WARNING, logger="colmap_pvs"):
-        ws = detect_workspace(statue_workspace)
+        detect_workspace(fresh)
     assert [r for r in caplog.records if "could not create the stereo folders" in r.getMessage()]
+    assert _tree(fresh) == fresh_before
+    ws = detect_workspace(statue_workspace)
     model = read_sparse_model(ws.sparse_dir)
     lines = [line.strip() for line in ws.patch_match_cfg.read_text().splitlines() if line.strip()]
     expected = {}
