@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import sys
 from pathlib import Path
 
@@ -73,11 +75,64 @@ def load_tool(name: str):
     return module
 
 
+#: Audit events that change a file or folder (``open``: only for writing), and their path arguments.
+_WRITE_EVENTS = {"os.mkdir": (0,), "os.rename": (0, 1), "os.remove": (0,), "os.rmdir": (0,),
+                 "os.symlink": (1,), "os.link": (1,), "os.truncate": (0,), "os.chmod": (0,), "os.chown": (0,),
+                 "os.utime": (0,), "shutil.rmtree": (0,), "shutil.copyfile": (1,), "shutil.copytree": (1,)}
+_WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
+
+
+def _read_only_folders() -> list[str]:
+    """The folders (real paths) that this test process may not change; one list per process (kept on
+    :mod:`sys`, as its audit hook is)."""
+    if not hasattr(sys, "_colmap_pvs_read_only_folders"):
+        sys._colmap_pvs_read_only_folders = []
+        sys.addaudithook(_refuse_writes)  # audit hooks stay for the process: installed once
+    return sys._colmap_pvs_read_only_folders
+
+
+def _refuse_writes(event: str, args: tuple) -> None:
+    """Audit hook: a write, folder made, rename or removal under a read-only folder raises PermissionError,
+    as on a read-only file system (also to root, which the tests may run as)."""
+    folders = getattr(sys, "_colmap_pvs_read_only_folders", None)
+    if not folders:
+        return
+    if event == "open":
+        path, mode, flags = args
+        writes = any(c in mode for c in "wax+") if isinstance(mode, str) else bool(flags & _WRITE_FLAGS)
+        paths = (path,) if writes else ()
+    else:
+        paths = tuple(args[i] for i in _WRITE_EVENTS.get(event, ()) if i < len(args))
+    for path in paths:
+        if isinstance(path, int) or path is None:
+            continue
+        full = os.path.realpath(os.fsdecode(path))
+        if any(full == top or full.startswith(top + os.sep) for top in folders):
+            raise PermissionError(errno.EACCES, "read-only to the tests", os.fsdecode(path))
+
+
+@pytest.fixture
+def read_only():
+    """``read_only(path)``: until the test ends, changing anything under ``path`` raises PermissionError."""
+    added: list[str] = []
+
+    def make(path: Path) -> None:
+        added.append(os.path.realpath(path))
+        _read_only_folders().append(added[-1])
+
+    yield make
+    for top in added:
+        _read_only_folders().remove(top)
+
+
 @pytest.fixture(scope="session")
 def shared_data_dir() -> Path:
-    """``../shared/data`` next to the repository (real captures; read-only). Skips if absent."""
+    """``../shared/data`` next to the repository (real captures; read-only, also to a test run as root:
+    changing anything under it raises PermissionError). Skips if absent."""
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is missing")
+    if os.path.realpath(SHARED_DATA) not in _read_only_folders():
+        _read_only_folders().append(os.path.realpath(SHARED_DATA))
     return SHARED_DATA
 
 

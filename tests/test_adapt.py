@@ -11,13 +11,14 @@ import torch
 from conftest import make_tiny_checkpoint
 from scenes import stereo_config
 
+import colmap_pvs.adapt as adapt_module
 from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
 from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.io.files import file_sha256
 from colmap_pvs.model import load_checkpoint
 from colmap_pvs.stereo import run_stereo
-from colmap_pvs.train import real_dataset
+from colmap_pvs.train import Trainer, TrainingInterrupted, real_dataset
 from colmap_pvs.train.real_dataset import RealDatasetConfig, RealMVSDataset
 from colmap_pvs.train.selfsup import selfsup_loss
 
@@ -59,21 +60,59 @@ def test_adaptation_writes_weights_and_reuses_or_redoes_them(workspace, base):
     assert meta["fingerprint"]["settings"]["lr"] == 5e-4
 
 
-def test_adaptation_resumes_an_interrupted_run(workspace, base):
+def _stop_after_step(monkeypatch, step: int, stop) -> None:
+    """Call ``stop(trainer)`` once the trainer has finished optimizer step ``step`` (once)."""
+    train_step = Trainer.train_step
+    stopped = []
+
+    def counting(self, batch):
+        out = train_step(self, batch)
+        if self.step == step and not stopped:
+            stopped.append(step)
+            stop(self)
+        return out
+
+    monkeypatch.setattr(Trainer, "train_step", counting)
+
+
+def test_adaptation_resumes_an_interrupted_run(workspace, base, monkeypatch):
     stereo_dir = workspace / "stereo"
-    adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=1e-3, **FAST), progress=False)
-    # as if killed after step 2 of 3: the adapted weights are gone, the run folder stays
-    (stereo_dir / "adapt" / "adapted.pt").unlink()
-    more = adapt_checkpoint(workspace, stereo_dir, base, AdaptConfig(steps=2, lr=1e-3, **FAST),
-                            progress=False)
-    assert not more.reused and more.steps == 2  # resumed at step 2: nothing left to do
+    cfg = AdaptConfig(steps=3, lr=1e-3, **FAST)
+    # SIGTERM after step 2 of 3: the trainer checkpoints its run folder and stops; no adapted weights
+    _stop_after_step(monkeypatch, 2, lambda trainer: trainer.request_stop("SIGTERM"))
+    with pytest.raises(TrainingInterrupted):
+        adapt_checkpoint(workspace, stereo_dir, base, cfg, progress=False)
+    assert not (stereo_dir / "adapt" / "adapted.pt").exists()
+    monkeypatch.undo()
+    more = adapt_checkpoint(workspace, stereo_dir, base, cfg, progress=False)
+    meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
+    assert not more.reused and more.steps == meta["steps"] == 3
+    assert meta["steps_this_run"] == 1  # resumed at step 2, not started again
 
 
-def test_time_limit_stops_early(workspace, base):
+def test_time_limit_stops_early(workspace, base, monkeypatch):
+    """``max_seconds`` arms a timer that stops the trainer after its current step. The timer is replaced by
+    one the test fires after step 2 (a wall-clock limit would depend on the machine's load)."""
+    timers = []
+
+    class Timer:
+        def __init__(self, interval, function, args=()):
+            self.interval, self.expire, self.cancelled = interval, lambda: function(*args), False
+            timers.append(self)
+
+        def start(self):
+            pass
+
+        def cancel(self):
+            self.cancelled = True
+
+    monkeypatch.setattr(adapt_module.threading, "Timer", Timer)
+    _stop_after_step(monkeypatch, 2, lambda trainer: timers[0].expire())
     done = adapt_checkpoint(
         workspace, workspace / "stereo", base, AdaptConfig(steps=500, max_seconds=0.5, **FAST), progress=False
     )
-    assert 1 <= done.steps < 500 and done.checkpoint.is_file()
+    assert [t.interval for t in timers] == [0.5] and timers[0].cancelled
+    assert done.steps == 2 and done.checkpoint.is_file() and not done.reused
 
 
 def test_adaptation_lowers_the_self_supervised_loss(workspace, base):

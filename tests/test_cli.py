@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import json
 from pathlib import Path
 
 import pytest
 
 from colmap_pvs.cli.colmap_flags import translate_colmap_flags
-from colmap_pvs.cli.main import COMMANDS, _build_config, build_parser, main
+from colmap_pvs.cli.main import COMMANDS, _build_config, _load, build_parser, main
 from colmap_pvs.config import config_to_dict
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.train import TrainConfig
@@ -23,8 +25,21 @@ def test_help_lists_every_subcommand(capsys):
 
 
 def test_every_built_command_has_a_config_and_function():
+    """Every ``module:attr`` of the table names what it should: a frozen config dataclass, a function
+    whose one required argument is that config, a report function."""
     for cmd in COMMANDS:
-        assert cmd.planned is not None or (cmd.config and cmd.function)
+        if cmd.planned is not None:
+            continue
+        assert cmd.config and cmd.function, cmd.name
+        config_cls = _load(cmd.config)
+        assert dataclasses.is_dataclass(config_cls) and config_cls.__dataclass_params__.frozen, cmd.config
+        params = list(inspect.signature(_load(cmd.function)).parameters.values())
+        annotation = params[0].annotation if params else None
+        assert getattr(annotation, "__name__", annotation) == config_cls.__name__, cmd.function
+        assert all(p.default is not inspect.Parameter.empty for p in params[1:]), cmd.function
+        if cmd.report is not None:
+            report = _load(cmd.report)
+            assert callable(report) and len(inspect.signature(report).parameters) >= 1, cmd.report
 
 
 def test_unknown_flag_is_rejected(capsys):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import time
+import os
 
 import pytest
 
@@ -28,12 +28,19 @@ SMALL = [
 ]
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this process (all its threads) and of its children that finished."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def test_demo_end_to_end_via_cli(tmp_path, monkeypatch, capsys, tiny_checkpoint):
     monkeypatch.setattr(stereo_module, "DEFAULT_CHECKPOINT", tiny_checkpoint)
     out = tmp_path / "demo"
-    start = time.perf_counter()
+    start = _cpu_seconds()
     assert main(["demo", str(out), *SMALL]) == 0
-    assert time.perf_counter() - start < 45
+    # quick: CPU seconds, which other jobs on a shared machine do not add to (wall-clock time they do)
+    assert _cpu_seconds() - start < 45
     report = capsys.readouterr().out
     assert "depth vs GT: AbsRel" in report and "fused cloud" in report
     assert (out / "stereo" / "fusion.cfg").is_file()

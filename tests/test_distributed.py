@@ -31,7 +31,11 @@ from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.stereo import CONFIG_FILENAME, StereoConfig, run_stereo
 from colmap_pvs.stereo.ray import TaskGraph, graph_sources, run_task_graph, stereo_passes
 
-TEST_SECONDS = 120  # no test of this module may run longer (SIGALRM)
+#: No test of this module may run longer (SIGALRM): a hang fails instead of stalling CI. Most take under
+#: 50 s on a 2-core machine shared with other test runs (load average 9); the limit is 6 times that.
+TEST_SECONDS = 300
+#: Tests that may take longer: the killed-worker test starts its own Ray for each of up to 6 runs.
+LONGER_SECONDS = {"test_ray_started_by_the_run_survives_a_worker_killed_mid_task": 600}
 
 
 # --------------------------------------------------------------------------- without Ray
@@ -157,17 +161,23 @@ def test_ray_flags_in_stereo_and_reconstruct():
 
 
 @pytest.fixture(autouse=True)
-def _deadline():
-    """Fail (instead of hanging CI) when a test runs over TEST_SECONDS."""
+def _deadline(request):
+    """Fail (instead of hanging CI) when a test runs over TEST_SECONDS (or its LONGER_SECONDS)."""
+    seconds = LONGER_SECONDS.get(request.node.originalname, TEST_SECONDS)
 
     def expire(signum, frame):
-        raise TimeoutError(f"test ran over {TEST_SECONDS} s")
+        raise TimeoutError(f"test ran over {seconds} s")
 
     previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(TEST_SECONDS)
+    signal.alarm(seconds)
     yield
     signal.alarm(0)
     signal.signal(signal.SIGALRM, previous)
+
+
+def _start_local_ray(ray) -> None:
+    ray.init(address="local", num_cpus=2, object_store_memory=80 * 1024**2, include_dashboard=False,
+             logging_level="warning")
 
 
 @pytest.fixture(scope="module")
@@ -175,8 +185,7 @@ def ray_cluster():
     """A local Ray with 2 CPUs and a small object store for this module; always shut down."""
     ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}  # ray.init replaces them
-    ray.init(address="local", num_cpus=2, object_store_memory=80 * 1024**2, include_dashboard=False,
-             logging_level="warning")
+    _start_local_ray(ray)
     try:
         yield ray
     finally:
@@ -233,6 +242,20 @@ def _assert_same_maps(ws: Path, local: Path) -> None:
 
 
 @pytest.fixture
+def no_ray_in_this_process():
+    """No Ray runs in this process during the test, whatever ran before: the module's cluster, if an
+    earlier test started it, is shut down and started again afterwards (its tests read its address
+    when they run)."""
+    ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
+    running = ray.is_initialized()
+    if running:
+        ray.shutdown()
+    yield ray
+    if running and not ray.is_initialized():
+        _start_local_ray(ray)
+
+
+@pytest.fixture
 def expected_worker_deaths(monkeypatch):
     """The deaths these tests cause on purpose, taken out of the output and returned as a list.
 
@@ -258,24 +281,31 @@ def expected_worker_deaths(monkeypatch):
     return deaths
 
 
-def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(scene, tmp_path, expected_worker_deaths):
+def test_ray_started_by_the_run_survives_a_worker_killed_mid_task(no_ray_in_this_process, scene, tmp_path,
+                                                                  expected_worker_deaths):
     """The default `--ray_address ""` starts a local Ray (and stops it, restoring this process's signal
     handlers); a worker killed with SIGKILL while it runs a task is replaced, its reference runs again
-    elsewhere, and every map equals the local run's. (Runs before the module's shared cluster starts.)"""
-    ray = pytest.importorskip("ray", reason='Ray is not installed (pip install "colmap-pvs[ray]")')
-    if ray.is_initialized():
-        pytest.skip("a Ray is already running in this process")
+    elsewhere, and every map equals the local run's.
+
+    A kill can land just after the worker's task returned (its title still says ``process``): that run
+    rightly retries nothing, and another run on a fresh copy is made (at most 3 runs with a kill)."""
+    ray = no_ray_in_this_process
     before = signal.getsignal(signal.SIGTERM)
 
     def after_run() -> None:
         assert not ray.is_initialized() and signal.getsignal(signal.SIGTERM) is before
 
-    ws, killed, result, error = _run_killing_a_worker(scene, tmp_path, after_run, ray_address="")
-    assert error is None, f"the lost reference was not retried: {error}"
-    assert killed[0] not in _worker_pids("any")
-    assert sum(result.retried.values()) >= 1  # the lost reference ran again, elsewhere
-    assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
-    _assert_same_maps(ws, scene["local"])
+    for attempt in range(3):
+        (tmp_path / f"run{attempt}").mkdir()
+        ws, killed, result, error = _run_killing_a_worker(scene, tmp_path / f"run{attempt}", after_run,
+                                                           ray_address="")
+        assert error is None, f"the lost reference was not retried: {error}"
+        assert killed[0] not in _worker_pids("any")
+        assert sorted(result.processed) == sorted(read_fusion_cfg(scene["local"] / "stereo" / "fusion.cfg"))
+        _assert_same_maps(ws, scene["local"])
+        if sum(result.retried.values()) >= 1:  # the lost reference ran again, elsewhere
+            break
+    assert sum(result.retried.values()) >= 1, "a worker was killed in 3 runs, but no task was retried"
 
 
 def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene, tmp_path):
@@ -310,8 +340,24 @@ def test_cli_driver_killed_then_rerun_resumes_with_local_maps(ray_cluster, scene
     _assert_same_maps(ws, scene["local"])
 
 
+def _started_by_this_process(pid: int) -> bool:
+    """Whether ``pid`` descends from this process (the workers of a Ray this process started): other
+    test runs on the same machine have Ray workers too, which are neither watched nor killed."""
+    me = os.getpid()
+    while pid > 1:
+        try:
+            stat = (Path("/proc") / str(pid) / "stat").read_text()
+        except OSError:
+            return False
+        pid = int(stat.rpartition(")")[2].split()[1])  # the parent's pid (after the command's name)
+        if pid == me:
+            return True
+    return False
+
+
 def _worker_pids(state: str) -> list[int]:
-    """PIDs of Ray StereoWorker processes; ``state="process"``: those running a task right now."""
+    """PIDs of the Ray StereoWorker processes of this process's Ray; ``state="process"``: those running a
+    task right now."""
     pids = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -322,7 +368,7 @@ def _worker_pids(state: str) -> list[int]:
             continue
         if title.startswith("ray::StereoWorker") and (
             state == "any" or title.startswith(f"ray::StereoWorker.{state}")
-        ):
+        ) and _started_by_this_process(int(entry.name)):
             pids.append(int(entry.name))
     return pids
 
@@ -372,7 +418,7 @@ def _run_killing_a_worker(scene, tmp_path, after_run, **config):
             error = exc
         finally:
             stop.set()
-            killer.join(5)
+            killer.join(30)  # it checks `stop` every few ms
         if after_run is not None:
             after_run()
         if killed:
@@ -402,7 +448,7 @@ def test_ray_retries_are_bounded(ray_cluster, scene, tmp_path, expected_worker_d
     assert re.search(r"view_\d+.png' \((photometric|geometric) pass\): its Ray worker died 1 time\(s\) "
                      r"\(last: ActorDiedError; ray_max_retries=0\)", str(error)), str(error)
     assert not [p for p in (ws / "stereo").rglob("*") if p.name.endswith(".tmp")]
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 60  # a wait, not a time limit: it ends when the workers are gone
     while _worker_pids("any") and time.monotonic() < deadline:  # the run kills its workers when it stops
         time.sleep(0.2)
     assert _worker_pids("any") == []

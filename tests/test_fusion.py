@@ -442,8 +442,11 @@ def test_vis_indices_follow_colmaps_image_numbering(workspace, analytic_scene):
     def check(result, min_fraction):
         xyz = read_point_cloud(result.output_path).xyz.astype(np.float64)
         offsets, idx = read_visibility(result.vis_path)
+        sampled = range(0, len(xyz), max(1, len(xyz) // 300))
+        assert len(xyz) > 100 and len(offsets) == len(xyz) + 1
+        assert all(offsets[p + 1] > offsets[p] for p in sampled), "a fused point is seen by no image"
         good = total = 0
-        for p in range(0, len(xyz), max(1, len(xyz) // 300)):
+        for p in sampled:
             for k in idx[offsets[p] : offsets[p + 1]]:
                 image = by_index[int(k)]
                 cam = reread.camera_of(image)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -433,6 +434,41 @@ def test_resize_image_keeps_pixel_centre_geometry() -> None:
         resize_image(np.zeros((0, 3)), 10)
 
 
-def test_statue_patch_match_is_read_only_safe(statue_workspace: Path) -> None:
-    ws = detect_workspace(statue_workspace)  # must not fail on a read-only workspace
-    assert read_sparse_model(ws.sparse_dir) is not None
+def _tree(root: Path) -> dict[str, tuple[bool, int, int]]:
+    """Every path under ``root``: (is a folder, size, mtime)."""
+    return {str(p.relative_to(root)): (p.is_dir(), p.stat().st_size, p.stat().st_mtime_ns)
+            for p in root.rglob("*")}
+
+
+def test_statue_patch_match_is_read_only_safe(statue_workspace: Path, tmp_path, read_only, caplog) -> None:
+    """COLMAP's own workspace, read-only (the tests refuse writes under the shared data, also as root):
+    detected, its sparse model, patch-match.cfg and fusion.cfg read as COLMAP wrote them, nothing under it
+    changed. The same workspace as a user has it before any stereo run (no map folders), read-only: the
+    folders that cannot be made are named in a warning."""
+    before = _tree(statue_workspace)
+    with pytest.raises(PermissionError):  # the guard is on
+        (statue_workspace / "stereo" / "probe").mkdir()
+    fresh = tmp_path / "statue"
+    (fresh / "stereo").mkdir(parents=True)
+    for folder in ("images", "sparse"):
+        (fresh / folder).symlink_to(statue_workspace / folder, target_is_directory=True)
+    for name in ("patch-match.cfg", "fusion.cfg"):
+        shutil.copy(statue_workspace / "stereo" / name, fresh / "stereo" / name)
+    read_only(fresh)
+    fresh_before = _tree(fresh)
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs"):
+        detect_workspace(fresh)
+    assert [r for r in caplog.records if "could not create the stereo folders" in r.getMessage()]
+    assert _tree(fresh) == fresh_before
+    ws = detect_workspace(statue_workspace)
+    model = read_sparse_model(ws.sparse_dir)
+    lines = [line.strip() for line in ws.patch_match_cfg.read_text().splitlines() if line.strip()]
+    expected = {}
+    for reference, sources in zip(lines[0::2], lines[1::2], strict=True):
+        items = [item.strip() for item in sources.split(",")]
+        expected[reference] = (SourceSpec("auto", (), int(items[1])) if items[0] == "__auto__" else
+                               SourceSpec("explicit", tuple(items), len(items)))
+    assert len(expected) >= 3 and read_patch_match_cfg(ws.patch_match_cfg) == expected
+    assert set(expected) <= set(model.image_ids_by_name)
+    assert set(read_fusion_cfg(ws.fusion_cfg)) <= set(model.image_ids_by_name)
+    assert _tree(statue_workspace) == before

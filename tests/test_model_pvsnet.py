@@ -119,11 +119,24 @@ def test_visibility_off_and_normalized_channels():
 
 
 def test_truncation_zeroes_low_visibility_in_output():
-    model = PVSNet(replace_config(TINY, truncation_threshold=0.5)).eval()
+    """The output visibility is the visibility network's, zeroed at or below the threshold (a threshold
+    between its values, so that both sides are seen)."""
+    torch.manual_seed(0)
+    inputs = make_inputs(1, 3, 32, 32)
+    raw_model = PVSNet(replace_config(TINY, truncation=False)).eval()
+    with torch.no_grad():  # a fresh visibility head gives 0.5 everywhere: spread it
+        for p in raw_model.visibility_net.parameters():
+            p.add_(0.3 * torch.randn_like(p))
     with torch.inference_mode():
-        out = model(*make_inputs(1, 3, 32, 32))
-    v = out.visibility
-    assert torch.all((v == 0) | (v > 0.5))
+        raw = raw_model(*inputs).visibility
+    tau = float(raw.median())
+    assert float(raw.min()) < tau < float(raw.max()) < 1, "the visibility network's maps are constant"
+    model = PVSNet(replace_config(TINY, truncation_threshold=tau)).eval()
+    model.load_state_dict(raw_model.state_dict())
+    with torch.inference_mode():
+        v = model(*inputs).visibility
+    assert v.shape == raw.shape and bool((v == 0).any()) and bool((v > tau).any())
+    assert torch.equal(v, torch.where(raw > tau, raw, torch.zeros_like(raw)))
 
 
 @pytest.mark.parametrize(

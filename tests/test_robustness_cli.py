@@ -111,11 +111,32 @@ def test_colmap_flags_with_an_equivalent_are_translated_into_the_config(caplog):
         PhotometricConfig(depth_range=(2.0, 1.0))
 
 
-def test_colmap_flags_reach_the_config(tmp_path, capsys):
-    # Without a workspace the run fails, but only after the flags were translated and validated.
+def test_colmap_flags_reach_the_config(tmp_path, capsys, monkeypatch):
+    import colmap_pvs.stereo as stereo
+
+    seen = []
+
+    def run_stereo(config):  # the config the command built; stop there
+        seen.append(config)
+        raise ConfigError("stopped by the test")
+
+    monkeypatch.setattr(stereo, "run_stereo", run_stereo)
+    ws = str(tmp_path / "ws")
+    code = main(["patch_match_stereo", "--workspace_path", ws, "--workspace_format", "COLMAP",
+                 "--PatchMatchStereo.max_image_size", "320", "--PatchMatchStereo.geom_consistency", "false",
+                 "--PatchMatchStereo.num_threads", "3", "--PatchMatchStereo.gpu_index", "-1"])
+    assert code == 1 and "stopped by the test" in capsys.readouterr().err
+    config = seen[0]
+    assert config.photometric.max_image_size == 320 and config.geometric.enabled is False
+    assert config.threads == 3 and config.device == "auto"
+    seen.clear()  # the same flags on `stereo`, and COLMAP's -1s
+    assert main(["stereo", "--workspace_path", ws, "--PatchMatchStereo.max_image_size", "-1",
+                 "--PatchMatchStereo.num_threads", "-1"]) == 1
+    assert seen[0].photometric.max_image_size == -1 and seen[0].threads == 0
+    # a bad value fails before the step runs, naming the flag
     code = main(["patch_match_stereo", "--workspace_path", str(tmp_path / "nowhere"),
                  "--PatchMatchStereo.max_image_size", "big"])
-    assert code == 1 and "max_image_size" in capsys.readouterr().err
+    assert code == 1 and "max_image_size" in capsys.readouterr().err and len(seen) == 1
 
 
 def test_os_errors_are_one_line(tmp_path, monkeypatch, capsys):

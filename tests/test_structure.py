@@ -28,16 +28,18 @@ MAX_LINES = 700
 
 #: Layers, lower first; a module may import modules of its own layer or of lower ones, never of a
 #: higher one. A module belongs to the entry with the longest matching prefix (``colmap_pvs.io.files``
-#: before ``colmap_pvs.io``); every module must belong to one.
+#: before ``colmap_pvs.io``); every module must belong to one. The package root ``colmap_pvs`` is the
+#: root module only (PACKAGE_ROOT), not a prefix of every module.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # the package root (``__version__``), errors, plain data types, the stdlib-only atomic file
     # writes every layer uses, the shipped weights
     ("base", ("colmap_pvs", "colmap_pvs.errors", "colmap_pvs.types", "colmap_pvs.io.files",
               "colmap_pvs.weights")),
     ("config", ("colmap_pvs.config",)),
-    # COLMAP's files (pycolmap) and the numpy core that works on maps
+    # COLMAP's files (pycolmap) and the numpy core that works on maps (confidence: its calibration)
     ("io and numeric core", ("colmap_pvs.io", "colmap_pvs.geometry", "colmap_pvs.upsampling",
-                             "colmap_pvs.normals", "colmap_pvs.consistency", "colmap_pvs.prior")),
+                             "colmap_pvs.normals", "colmap_pvs.consistency", "colmap_pvs.prior",
+                             "colmap_pvs.confidence")),
     ("model", ("colmap_pvs.model",)),
     # completion fits the model's dense prior (colmap_pvs.model.cost) to the kept pixels
     ("completion, views, mesh, evaluation", ("colmap_pvs.completion", "colmap_pvs.views",
@@ -114,6 +116,10 @@ def _imports(module: str) -> list[Import]:
                     for alias in child.names:  # `from . import config as settings`: the submodule
                         sub = f"{base}.{alias.name}"
                         targets.append(sub if sub in LIBRARY_FILES else _known(base))
+            elif isinstance(child, ast.Call):  # importlib.import_module("colmap_pvs.x"), __import__(...)
+                name = _imported_by_call(child, package)
+                if name.split(".")[0] == "colmap_pvs":
+                    targets = [_known(name)]
             for target in targets:
                 if target and target != module:
                     found.append(Import(target, lazy, child.lineno))
@@ -123,16 +129,39 @@ def _imports(module: str) -> list[Import]:
     return found
 
 
+def _imported_by_call(call: ast.Call, package: str) -> str:
+    """The module that ``import_module(NAME[, package])`` or ``__import__(NAME)`` imports, when NAME is a
+    string constant (a relative NAME counts from this module's package); else ""."""
+    func = call.func
+    callee = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+    if callee not in ("import_module", "__import__") or not call.args:
+        return ""
+    name = call.args[0]
+    if not (isinstance(name, ast.Constant) and isinstance(name.value, str)):
+        return ""
+    dots = len(name.value) - len(name.value.lstrip("."))
+    if callee == "__import__" or not dots:
+        return name.value
+    base = package.rsplit(".", dots - 1)[0] if dots > 1 else package
+    rest = name.value[dots:]
+    return f"{base}.{rest}" if rest else base
+
+
 @cache
 def _graph() -> dict[str, list[Import]]:
     return {module: _imports(module) for module in LIBRARY_FILES}
+
+
+#: The package's root module: in LAYERS it names ``colmap_pvs/__init__.py`` alone.
+PACKAGE_ROOT = "colmap_pvs"
 
 
 def _layer(module: str) -> int:
     best, index = "", -1
     for i, (_, prefixes) in enumerate(LAYERS):
         for prefix in prefixes:
-            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > len(best):
+            below = prefix != PACKAGE_ROOT and module.startswith(prefix + ".")
+            if (module == prefix or below) and len(prefix) > len(best):
                 best, index = prefix, i
     return index
 
@@ -188,6 +217,29 @@ def test_the_graph_reader_resolves_relative_and_lazy_imports():
     assert {"colmap_pvs.views.config", "colmap_pvs.views.scores", "colmap_pvs.types"} <= targets
     lazy = {i.target for i in graph["colmap_pvs.adapt"] if i.lazy}
     assert "colmap_pvs.train" in lazy and "colmap_pvs.train.real_dataset" in lazy
+
+
+def test_the_graph_reader_follows_import_module_calls(tmp_path, monkeypatch):
+    source = (
+        "import importlib\n"
+        "from importlib import import_module\n"
+        "def run():\n"
+        "    importlib.import_module('colmap_pvs.train')\n"
+        "    import_module('.adaptation', __package__)\n"
+        "    __import__('colmap_pvs.adapt')\n"
+        "    importlib.import_module(name_from_a_table)\n"
+    )
+    (tmp_path / "probe.py").write_text(source)
+    monkeypatch.setitem(LIBRARY_FILES, "colmap_pvs.stereo.probe", tmp_path / "probe.py")
+    found = {(i.target, i.lazy, i.line) for i in _imports("colmap_pvs.stereo.probe")}
+    assert found == {("colmap_pvs.train", True, 4), ("colmap_pvs.stereo.adaptation", True, 5),
+                     ("colmap_pvs.adapt", True, 6)}
+
+
+def test_the_package_root_is_no_prefix_of_every_module():
+    assert _layer("colmap_pvs") == 0 and _layer("colmap_pvs.errors") == 0
+    assert _layer("colmap_pvs.new_stage") < 0  # a new top-level module must be added to LAYERS
+    assert _layer("colmap_pvs.io.new_reader") == _layer("colmap_pvs.io")
 
 
 def test_strongly_connected_components_find_a_cycle():
@@ -252,12 +304,29 @@ def test_no_library_file_over_the_line_limit():
     assert not long, f"library files over {MAX_LINES} lines: {long}"
 
 
+def _setuptools_packages(text: str) -> list[str]:
+    """``[tool.setuptools] packages`` of a pyproject.toml, read without ``tomllib`` (Python 3.10 has
+    none): the table's ``packages = [...]`` array of strings (comments and trailing commas allowed)."""
+    table = re.search(r"^\[tool\.setuptools\][ \t]*$(.*?)(?=^\[|\Z)", text, flags=re.M | re.S)
+    assert table, "pyproject.toml has no [tool.setuptools] table"
+    array = re.search(r"^packages\s*=\s*\[(.*?)\]", table.group(1), flags=re.M | re.S)
+    assert array, "[tool.setuptools] has no packages = [...] list"
+    items = re.sub(r"#[^\n]*", "", array.group(1))
+    return list(ast.literal_eval(f"[{items}]"))
+
+
 def test_every_package_is_installed():
-    tomllib = pytest.importorskip("tomllib")
-    with (REPO_ROOT / "pyproject.toml").open("rb") as f:
-        installed = set(tomllib.load(f)["tool"]["setuptools"]["packages"])
+    text = (REPO_ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    installed = _setuptools_packages(text)
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10: the reader above is all there is
+        tomllib = None
+    if tomllib is not None:  # the reader above reads what a TOML parser reads
+        assert installed == tomllib.loads(text)["tool"]["setuptools"]["packages"]
     packages = {m for m, path in LIBRARY_FILES.items() if path.name == "__init__.py"}
-    assert packages <= installed, f"packages missing from pyproject.toml: {sorted(packages - installed)}"
+    missing = sorted(packages - set(installed))
+    assert len(installed) > 5 and not missing, f"packages missing from pyproject.toml: {missing}"
 
 
 def _loaded_after(module: str, prefixes: tuple[str, ...]) -> list[str]:
