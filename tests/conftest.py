@@ -30,8 +30,6 @@ def pytest_configure(config: pytest.Config) -> None:
     back on a copy of the real stderr, now and before every test.
     """
     global _CRASH_REPORT_FD
-    import os
-
     import pycolmap  # noqa: F401  (its import replaces the handler)
 
     _CRASH_REPORT_FD = os.dup(sys.__stderr__.fileno())
@@ -56,7 +54,6 @@ def pytest_runtest_call(item: pytest.Item) -> None:
 def pytest_unconfigure(config: pytest.Config) -> None:
     global _CRASH_REPORT_FD
     import faulthandler
-    import os
 
     if _CRASH_REPORT_FD is not None:
         faulthandler.disable()
