@@ -61,6 +61,63 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         _CRASH_REPORT_FD = None
 
 
+#: Set in the child process that runs the tests marked ``own_process``.
+OWN_PROCESS_ENV = "COLMAP_PVS_TESTS_OWN_PROCESS"
+#: The longest the child of :class:`OwnProcess` may take (its tests have their own limits too).
+OWN_PROCESS_SECONDS = 1800
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list) -> None:
+    """The selected tests marked ``own_process`` (the Ray backend's) run together in a child pytest.
+
+    ``ray.shutdown()`` leaves Ray's native threads (its GCS client's event loop, gRPC's) running in the
+    process that started Ray, with Ray's fatal-signal handlers installed; in the suite's own process they
+    would live on beside every later test. In a child they end with it.
+    """
+    if os.environ.get(OWN_PROCESS_ENV) or config.getoption("collectonly"):
+        return
+    own = [item for item in items if item.get_closest_marker("own_process")]
+    if not own:
+        return
+    at = items.index(own[0])
+    items[:] = [item for item in items if not item.get_closest_marker("own_process")]
+    items.insert(at, OwnProcess.from_parent(session, name="own_process", nodeids=[i.nodeid for i in own]))
+
+
+class OwnProcess(pytest.Item):
+    """The tests ``nodeids`` run by a child ``python -m pytest``: passes when all of them pass."""
+
+    def __init__(self, *, nodeids: list[str], **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.nodeids = nodeids
+
+    def runtest(self) -> None:
+        import subprocess
+
+        env = {**os.environ, OWN_PROCESS_ENV: "1"}
+        run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *self.nodeids],
+                             cwd=self.config.rootpath, env=env, capture_output=True, text=True,
+                             timeout=OWN_PROCESS_SECONDS)
+        summary = (run.stdout.strip().splitlines() or ["(no output)"])[-1]
+        if run.returncode != 0:
+            raise OwnProcessFailed(f"{len(self.nodeids)} test(s) in a child pytest (exit {run.returncode}): "
+                                   f"{summary}\n{run.stdout[-20000:]}\n{run.stderr[-5000:]}")
+        self.add_report_section("call", "child", summary)
+
+    def repr_failure(self, excinfo):
+        if isinstance(excinfo.value, OwnProcessFailed):
+            return str(excinfo.value)
+        return super().repr_failure(excinfo)
+
+    def reportinfo(self):
+        return self.path, None, f"{len(self.nodeids)} test(s) marked own_process, in a child pytest"
+
+
+class OwnProcessFailed(Exception):
+    """A test :class:`OwnProcess` ran failed (the message holds the child's report)."""
+
+
 def load_tool(name: str):
     """The script ``tools/NAME.py`` as a module (``tools/`` is not a package), registered as ``NAME``."""
     import importlib.util

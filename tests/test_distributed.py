@@ -31,6 +31,9 @@ from colmap_pvs.io.workspace import read_fusion_cfg
 from colmap_pvs.stereo import CONFIG_FILENAME, StereoConfig, run_stereo
 from colmap_pvs.stereo.ray import TaskGraph, graph_sources, run_task_graph, stereo_passes
 
+#: Ray's native threads outlive ray.shutdown(): these tests run in a child pytest (tests/conftest.py).
+pytestmark = pytest.mark.own_process
+
 #: No test of this module may run longer (SIGALRM): a hang fails instead of stalling CI. Most take under
 #: 50 s on a 2-core machine shared with other test runs (load average 9); the limit is 6 times that.
 TEST_SECONDS = 300
