@@ -48,9 +48,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["ReconstructConfig", "ReconstructResult", "reconstruct", "STAGES"]
 
 STAGES = ("features", "matching", "mapping", "undistort", "stereo", "fusion", "mesh")
-#: The settings each stage's output depends on ("photos": names and sizes of the photos; "model": the
-#: sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so a moved
-#: copy of the same weights is the same checkpoint and new weights at the same path are not;
+#: The settings each stage's output depends on ("photos": names, sizes and content of the photos;
+#: "model": the sparse model given with ``input_path``; "checkpoint_sha256": the checkpoint's content, so
+#: a moved copy of the same weights is the same checkpoint and new weights at the same path are not;
 #: "calibration_sha256": its confidence calibration's, ``colmap_pvs.confidence.calibration_path``).
 STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "features": (
@@ -237,14 +237,31 @@ def _model_dir_ok(path: Path) -> bool:
 
 
 def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
-    digest = hashlib.sha256()
+    """The photos' names and sizes (``sha256``) and their content (``content_sha256``: a photo edited in
+    place, same size and name, is a change too)."""
+    digest, content = hashlib.sha256(), hashlib.sha256()
     for name in names:
         digest.update(f"{name}\0{(folder / name).stat().st_size}\n".encode())
-    return {"count": len(names), "sha256": digest.hexdigest()}
+        content.update(f"{name}\0{file_sha256(folder / name)}\n".encode())
+    return {"count": len(names), "sha256": digest.hexdigest(), "content_sha256": content.hexdigest()}
+
+
+def _photos_differ(old, new: dict) -> bool:
+    """A record of an older colmap-pvs has no ``content_sha256``: its names and sizes are compared."""
+    if not isinstance(old, dict):
+        return old != new
+    key = "content_sha256" if "content_sha256" in old else "sha256"
+    return old.get("count") != new["count"] or old.get(key) != new[key]
 
 
 #: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
 LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
+
+
+def _stereo_inputs(dense: Path) -> str:
+    """What the stereo step reads besides its settings, by file name, size and time: the undistorted
+    images, the sparse model and ``stereo/patch-match.cfg``."""
+    return files_state_sha256([dense / "images", dense / "sparse", dense / "stereo" / "patch-match.cfg"])
 
 
 def _remove_stale(path: Path) -> None:
@@ -281,7 +298,7 @@ def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: P
 
 def _describe_change(key: str, old, new) -> str:
     if key == "photos":
-        return f"the photos ({old.get('count')} -> {new.get('count')} files; names or sizes changed)"
+        return f"the photos ({old.get('count')} -> {new.get('count')} files; names, sizes or content changed)"
     if key == "stereo":
         changed = [f"--{k} {old.get(k)} -> {v}" for k, v in new.items() if k in old and old[k] != v]
         return "stereo settings " + ", ".join(changed)
@@ -309,6 +326,8 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
                 differs = any(k in old and old[k] != v for k, v in new.items())
             elif key == "calibration_sha256":  # recorded since the confidence is calibrated; before: none
                 differs = old != new
+            elif key == "photos" and key in recorded:
+                differs = _photos_differ(old, new)
             elif key == "stereo_formats":  # not a setting: stereo resumes (redoing what changed)
                 if old != new:
                     formats_changed = True
@@ -583,6 +602,13 @@ def _reconstruct(
         return
 
     previews = dense / "stereo" / "previews"
+    stereo_inputs = _stereo_inputs(dense)
+    if prog.done("stereo") and prog.recorded("stereo", "inputs") != stereo_inputs:
+        # the undistorted images, the model or patch-match.cfg changed since (or an older marker without
+        # their record): stereo resumes, recomputing the maps whose inputs changed
+        logger.info("reconstruct: the images, model or patch-match.cfg in %s changed since the depth maps "
+                    "were made (or there is no record of them): resuming stereo", dense)
+        prog.unmark("stereo")
     if prog.done("stereo"):
         prog.skip("stereo", "depth maps already computed")
         if config.stereo.previews and not previews.is_dir():  # output-only: the maps stay as they are
@@ -596,7 +622,7 @@ def _reconstruct(
         st = run_stereo(replace_config(config.stereo, workspace_path=dense,
                                        overwrite="stereo" in prog.overwrite))
         result.stereo_skipped = dict(st.skipped)
-        prog.mark("stereo")
+        prog.mark("stereo", inputs=_stereo_inputs(dense))
         prog.stop()
     result.previews_path = previews if config.stereo.previews or previews.is_dir() else None
     if config.stop_after == "stereo":

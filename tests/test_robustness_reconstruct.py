@@ -4,6 +4,7 @@ names where to look, and bad photos refused before SfM."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
@@ -382,3 +383,57 @@ def test_two_overlapping_photos_reconstruct(shared_data_dir, tmp_path):
     result = reconstruct(reconstruct_config(image_path=images, workspace_path=tmp_path / "out", num_threads=1,
                                            stop_after="mapping"))
     assert result.num_registered == 2 and result.num_points3D > 100
+
+
+def _write_stored_png(path, image) -> None:
+    """A PNG without compression: its size depends on the image size only, so edited pixels keep it."""
+    assert cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 0])
+
+
+def test_a_photo_edited_in_place_is_a_changed_input(analytic_scene, tmp_path):
+    """A photo painted over with its name and size unchanged was taken for the same photo; the models and
+    maps made from the old one were kept."""
+    ws = analytic_scene["root"]
+    images = tmp_path / "photos"
+    images.mkdir()
+    for src in sorted((ws / "images").iterdir()):
+        _write_stored_png(images / src.name, cv2.imread(str(src)))
+    flags = dict(image_path=images, workspace_path=tmp_path / "out", input_path=ws / "sparse", num_threads=1,
+                 stop_after="undistort")
+    reconstruct(reconstruct_config(**flags))
+    photo = sorted(images.iterdir())[1]
+    size = photo.stat().st_size
+    image = cv2.imread(str(photo))
+    image[:, : image.shape[1] // 3] = (0, 0, 255)
+    _write_stored_png(photo, image)
+    assert photo.stat().st_size == size
+    with pytest.raises(ConfigError, match=r"the photos .*content changed.*--overwrite"):
+        reconstruct(reconstruct_config(**flags))
+    reconstruct(reconstruct_config(**flags, overwrite=True))
+    assert "undistort" in reconstruct(reconstruct_config(**flags)).resumed
+
+
+def test_stereo_follows_the_dense_workspaces_images(analytic_scene, tmp_path, caplog):
+    """An undistorted image of `dense/` edited since its maps were made: the stereo step resumes (only the
+    maps that read it are made again) instead of being skipped as done."""
+    ws = analytic_scene["root"]
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
+    out = tmp_path / "out"
+    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
+                 num_views=3, num_threads=1, max_image_size=64, stop_after="stereo")
+    reconstruct(reconstruct_config(**flags))
+    assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed
+    edited = sorted((out / "dense" / "images").iterdir())[0]
+    record = out / "dense" / "stereo" / "provenance" / f"{edited.name}.photometric.json"
+    image = cv2.imread(str(edited))
+    image[:, : image.shape[1] // 3] = (0, 0, 255)
+    cv2.imwrite(str(edited), image)
+    caplog.set_level("INFO", logger="colmap_pvs")
+    result = reconstruct(reconstruct_config(**flags))
+    assert "stereo" not in result.resumed
+    assert any("resuming stereo" in r.getMessage() for r in caplog.records)
+    assert any(r.getMessage().startswith("stereo photometric: ") and f"image pixels changed: {edited.name}"
+               in r.getMessage() for r in caplog.records)
+    recorded = json.loads(record.read_text())["settings"]["image_sha256"]
+    assert recorded == hashlib.sha256(edited.read_bytes()).hexdigest()  # made from the edited image
+    assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed
