@@ -38,7 +38,7 @@ from .confidence import calibration_path, load_calibration
 from .config import check_threads, config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
-from .io.files import atomic_write_bytes, file_sha256, files_state_sha256
+from .io.files import atomic_write_bytes, file_sha256, files_state_sha256, remove_database
 from .io.images import check_image_file, check_image_format
 from .io.workspace import fusion_inputs_sha256, set_aside_foreign_output
 from .stereo.config import FORMAT_VERSIONS, StereoConfig, map_settings
@@ -397,11 +397,28 @@ def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[st
 # --------------------------------------------------------------------------- SfM
 
 
+def _extract(config: ReconstructConfig, database: Path, image_dir: Path, names: list[str]) -> None:
+    from .io.features import extract_features
+
+    extract_features(
+        database,
+        image_dir,
+        names,
+        camera_model=config.camera_model,
+        single_camera=config.single_camera,
+        num_threads=config.num_threads,
+        max_image_size=config.sift_max_image_size,
+        max_num_features=config.max_num_features,
+        peak_threshold=config.sift_peak_threshold,
+        progress=True,
+    )
+
+
 def _run_sfm(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, stop_after: str | None
 ) -> Path | None:
     """Features, matching and mapping; ``None`` when ``stop_after`` stopped it before a model exists."""
-    from .io.features import clear_matches, extract_features, match_features, resolve_matcher
+    from .io.features import clear_matches, match_features, resolve_matcher
     from .io.sfm import incremental_mapping
 
     image_dir = Path(config.image_path)
@@ -416,22 +433,17 @@ def _run_sfm(
         prog.skip("features", "already extracted")
     else:
         prog.start("features")
-        for p in (db, Path(str(db) + "-wal"), Path(str(db) + "-shm")):
-            p.unlink(missing_ok=True)
         prog.unmark("matching")
         prog.overwrite.discard("matching")  # a new database has no matches to forget
-        extract_features(
-            db,
-            image_dir,
-            names,
-            camera_model=config.camera_model,
-            single_camera=config.single_camera,
-            num_threads=config.num_threads,
-            max_image_size=config.sift_max_image_size,
-            max_num_features=config.max_num_features,
-            peak_threshold=config.sift_peak_threshold,
-            progress=True,
-        )
+        staged = root / "database.db.new"  # replaces the old database once complete
+        remove_database(staged)
+        try:
+            _extract(config, staged, image_dir, names)
+        except BaseException:
+            remove_database(staged)
+            raise
+        remove_database(db)
+        os.replace(staged, db)
         prog.mark("features")
         prog.stop()
     if stop_after == "features":

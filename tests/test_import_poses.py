@@ -364,3 +364,29 @@ def test_real_subset_subpixel(shared_data_dir, tmp_path, folder, marker, subset,
     errs = reprojection_errors(out)
     assert errs.size > 1000
     assert np.median(errs) < max_median_px
+
+
+def test_a_failed_overwrite_keeps_the_old_model_record_and_database(tmp_path, monkeypatch):
+    """`--overwrite` deleted the model, its record and the database before making new ones: a full disk
+    during the new feature extraction left nothing. Now the new database is built beside the old one."""
+    import errno
+    import os
+
+    import colmap_pvs.io.import_poses as module
+
+    _analytic_scene_with_poses(tmp_path)
+    config = dict(image_path=tmp_path / "ws" / "images", poses_path=tmp_path / "poses.json",
+                  output_path=tmp_path / "out", num_threads=1)
+    import_poses(ImportPosesConfig(**config))
+    out = tmp_path / "out"
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert {Path("database.db"), Path("import_poses.json"), Path("sparse/points3D.bin")} <= set(before)
+
+    def full(database, *args, **kwargs):
+        Path(database).write_bytes(b"half")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(database))
+
+    monkeypatch.setattr(module, "extract_features", full)
+    with pytest.raises(OSError, match="No space left"):
+        import_poses(ImportPosesConfig(**config, sift_peak_threshold=0.008, overwrite=True))
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

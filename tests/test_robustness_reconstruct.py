@@ -8,6 +8,7 @@ import hashlib
 import json
 import re
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -437,3 +438,28 @@ def test_stereo_follows_the_dense_workspaces_images(analytic_scene, tmp_path, ca
     recorded = json.loads(record.read_text())["settings"]["image_sha256"]
     assert recorded == hashlib.sha256(edited.read_bytes()).hexdigest()  # made from the edited image
     assert "stereo" in reconstruct(reconstruct_config(**flags)).resumed
+
+
+def test_a_failed_feature_extraction_of_an_overwrite_keeps_the_old_database(analytic_scene, tmp_path,
+                                                                           monkeypatch):
+    """The database was deleted before the new extraction: a full disk left none."""
+    import errno
+    import os
+
+    import colmap_pvs.io.features as features
+
+    flags = dict(image_path=analytic_scene["root"] / "images", workspace_path=tmp_path / "out", num_threads=1,
+                 stop_after="features")
+    reconstruct(reconstruct_config(**flags))
+    db = tmp_path / "out" / "database.db"
+    before = db.read_bytes()
+
+    def full(database, *args, **kwargs):
+        Path(database).write_bytes(b"half")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(database))
+
+    monkeypatch.setattr(features, "extract_features", full)
+    with pytest.raises(OSError, match="No space left"):
+        reconstruct(reconstruct_config(**flags, max_num_features=500, overwrite=True))
+    assert db.read_bytes() == before
+    assert sorted(p.name for p in db.parent.glob("database.db*")) == ["database.db"]

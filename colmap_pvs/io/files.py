@@ -24,9 +24,12 @@ __all__ = [
     "atomic_write_bytes",
     "current_umask",
     "file_sha256",
+    "files_state_sha256",
     "host_tag",
     "make_temp_dir",
+    "remove_database",
     "temp_tag",
+    "write_files_together",
     "write_temp_file",
 ]
 
@@ -56,6 +59,12 @@ def files_state_sha256(paths: list[str | Path]) -> str:
             if path.is_file():
                 digest.update(f"{path}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return digest.hexdigest()
+
+
+def remove_database(path: str | Path) -> None:
+    """Remove a COLMAP database (SQLite) and its journal files (``-wal``, ``-shm``)."""
+    for p in (Path(path), Path(f"{path}-wal"), Path(f"{path}-shm")):
+        p.unlink(missing_ok=True)
 
 
 def current_umask() -> int:

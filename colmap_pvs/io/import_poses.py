@@ -71,8 +71,9 @@ import numpy as np
 from ..config import check_threads, config_to_dict, save_config
 from ..errors import ConfigError, WorkspaceError
 from .features import extract_features, match_features, resolve_matcher
-from .files import make_temp_dir
+from .files import make_temp_dir, remove_database
 from .images import read_image_size
+from .sparse import replace_directory
 
 logger = logging.getLogger(__name__)
 
@@ -515,88 +516,92 @@ def import_poses(config: ImportPosesConfig) -> Path:
             )
     logger.info("import-poses: %d images (%s format) from %s", len(cams), fmt, config.poses_path)
     out.mkdir(parents=True, exist_ok=True)
-    # The old model and its record go first: a failed recomputation must not leave a stale model that
-    # a rerun would take for a finished one. The record is written again once the new model is in place.
-    (out / SETTINGS_FILENAME).unlink(missing_ok=True)
-    if model_dir.exists():
-        shutil.rmtree(model_dir)
-    db_path = out / "database.db"
-    for p in (db_path, out / "database.db-wal", out / "database.db-shm"):
-        p.unlink(missing_ok=True)
-
-    t0 = time.perf_counter()
-    groups = _camera_groups(cams, sizes)
-    for group in groups:
-        K = group[0].K
-        extract_features(
-            db_path,
-            image_dir,
-            [c.name for c in group],
-            camera_model="PINHOLE",
-            camera_params=(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-            single_camera=True,
-            num_threads=config.num_threads,
-            max_image_size=config.feature_max_image_size,
-            max_num_features=config.max_num_features,
-            peak_threshold=config.sift_peak_threshold,
-        )
-    t1 = time.perf_counter()
-    logger.info("import-poses: SIFT on %d images (%d camera(s)) in %.1f s", len(cams), len(groups), t1 - t0)
-
-    matcher = resolve_matcher(config.matcher, len(cams), 50)
-    match_features(
-        db_path,
-        matcher,
-        num_images=len(cams),
-        num_threads=config.num_threads,
-        sequential_overlap=config.sequential_overlap,
-    )
-    t2 = time.perf_counter()
-    logger.info("import-poses: %s matching in %.1f s", matcher, t2 - t1)
-
-    by_name = {c.name: c for c in cams}
-    rec = pycolmap.Reconstruction()
-    with pycolmap.Database.open(str(db_path)) as db:
-        db_images = db.read_all_images()
-        added_cams = set()
-        for im in db_images:
-            c = by_name.get(im.name)
-            if c is None:
-                raise WorkspaceError(f"database image {im.name!r} has no known pose")
-            cam = db.read_camera(im.camera_id)
-            want = [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]]
-            if cam.model_name != "PINHOLE" or not np.allclose(cam.params, want, rtol=0, atol=1e-9):
-                cam.model = pycolmap.CameraModelId.PINHOLE
-                cam.params = want
-                db.update_camera(cam)
-            if im.camera_id not in added_cams:
-                rec.add_camera_with_trivial_rig(cam)
-                added_cams.add(im.camera_id)
-            image = pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id)
-            rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(c.cam_from_world))
-    if len(db_images) != len(cams):
-        raise WorkspaceError(f"feature extraction stored {len(db_images)} of {len(cams)} images in {db_path}")
-
-    tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=out)
+    # The old model, its record and database stay until the new ones are complete (a failure, a full
+    # disk, keeps them as they were): the new database is built beside the old one.
+    final_db, db_path = out / "database.db", out / "database.db.new"
+    remove_database(db_path)  # what a killed run left
     try:
-        given = {i: np.array(c.params[:2], dtype=np.float64) for i, c in rec.cameras.items()}
-        refine = config.refine_focal_length and _enough_images_to_refine(db_images)
-        options = pycolmap.IncrementalPipelineOptions()
-        options.ba_refine_focal_length = refine
-        options.ba_refine_principal_point = False
-        options.ba_refine_extra_params = False
-        result = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp), options=options,
-                                             refine_intrinsics=refine)
-        if result.num_points3D() == 0:
-            raise WorkspaceError(
-                f"no points could be triangulated from {len(cams)} images: too few matches (check the poses, "
-                "the image overlap or --max_num_features)"
+        t0 = time.perf_counter()
+        groups = _camera_groups(cams, sizes)
+        for group in groups:
+            K = group[0].K
+            extract_features(
+                db_path,
+                image_dir,
+                [c.name for c in group],
+                camera_model="PINHOLE",
+                camera_params=(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+                single_camera=True,
+                num_threads=config.num_threads,
+                max_image_size=config.feature_max_image_size,
+                max_num_features=config.max_num_features,
+                peak_threshold=config.sift_peak_threshold,
             )
-        result.write(str(tmp))
-        os.replace(tmp, model_dir)
+        t1 = time.perf_counter()
+        logger.info("import-poses: SIFT on %d images (%d camera(s)) in %.1f s", len(cams), len(groups),
+                    t1 - t0)
+
+        matcher = resolve_matcher(config.matcher, len(cams), 50)
+        match_features(
+            db_path,
+            matcher,
+            num_images=len(cams),
+            num_threads=config.num_threads,
+            sequential_overlap=config.sequential_overlap,
+        )
+        t2 = time.perf_counter()
+        logger.info("import-poses: %s matching in %.1f s", matcher, t2 - t1)
+
+        by_name = {c.name: c for c in cams}
+        rec = pycolmap.Reconstruction()
+        with pycolmap.Database.open(str(db_path)) as db:
+            db_images = db.read_all_images()
+            added_cams = set()
+            for im in db_images:
+                c = by_name.get(im.name)
+                if c is None:
+                    raise WorkspaceError(f"database image {im.name!r} has no known pose")
+                cam = db.read_camera(im.camera_id)
+                want = [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]]
+                if cam.model_name != "PINHOLE" or not np.allclose(cam.params, want, rtol=0, atol=1e-9):
+                    cam.model = pycolmap.CameraModelId.PINHOLE
+                    cam.params = want
+                    db.update_camera(cam)
+                if im.camera_id not in added_cams:
+                    rec.add_camera_with_trivial_rig(cam)
+                    added_cams.add(im.camera_id)
+                image = pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id)
+                rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(c.cam_from_world))
+        if len(db_images) != len(cams):
+            raise WorkspaceError(
+                f"feature extraction stored {len(db_images)} of {len(cams)} images in {db_path}")
+
+        tmp = make_temp_dir(prefix=".sparse.", suffix=".tmp", parent=out)
+        try:
+            given = {i: np.array(c.params[:2], dtype=np.float64) for i, c in rec.cameras.items()}
+            refine = config.refine_focal_length and _enough_images_to_refine(db_images)
+            options = pycolmap.IncrementalPipelineOptions()
+            options.ba_refine_focal_length = refine
+            options.ba_refine_principal_point = False
+            options.ba_refine_extra_params = False
+            result = pycolmap.triangulate_points(rec, str(db_path), str(image_dir), str(tmp), options=options,
+                                                 refine_intrinsics=refine)
+            if result.num_points3D() == 0:
+                raise WorkspaceError(
+                    f"no points could be triangulated from {len(cams)} images: too few matches (check the "
+                    "poses, the image overlap or --max_num_features)"
+                )
+            result.write(str(tmp))
+            (out / SETTINGS_FILENAME).unlink(missing_ok=True)  # written again below, for the new model
+            replace_directory(tmp, model_dir)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_database(db_path)
         raise
+    remove_database(final_db)
+    os.replace(db_path, final_db)
     save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config),
                 focal_lengths_refined=refine)
     if refine:
