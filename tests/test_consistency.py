@@ -147,3 +147,110 @@ def test_sources_checked_in_threads_give_the_same_result(exact):
     assert one.agree.any() and not one.agree.all()
     for field in ("agree", "checked", "reproj_error", "depth_error", "reprojected_depth", "parallax"):
         np.testing.assert_array_equal(getattr(many, field), getattr(one, field), err_msg=field)
+
+
+def _facing_source(scale):
+    """A 16 x 16 reference at the origin looking at a plane at depth 2 (its top 4 rows at 3.9), and a
+    source at depth 4 on its axis looking back at it (turned 180 degrees about y); lengths times ``scale``."""
+    K = np.array([[16.0, 0.0, 8.0], [0.0, 16.0, 8.0], [0.0, 0.0, 1.0]])
+    depth = np.full((16, 16), 2.0 * scale, np.float32)
+    depth[:4] = 3.9 * scale
+    src = np.array([[-1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 4.0 * scale]])
+    return depth, K, np.eye(4)[:3], src
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.1])
+def test_parallax_and_angle_of_a_source_facing_the_reference_in_any_unit(scale):
+    """Triangulation angles beyond 90 degrees are measured as they are (a source facing the reference sees
+    the points at about 180); a pixel whose deeper point passes behind the source has no parallax (0); both
+    are the same whatever the scene's unit."""
+    from colmap_pvs.consistency import PARALLAX_STEP
+
+    depth, K, ref_T, src_T = _facing_source(scale)
+    res = check_consistency(depth, None, K, ref_T, [SourceMaps(depth, None, K, src_T)])
+    rows, cols = np.mgrid[:16, :16]
+    X = np.linalg.inv(K) @ np.stack([(cols + 0.5) * depth, (rows + 0.5) * depth, depth]).reshape(3, -1)
+    to_src = X - np.array([[0.0], [0.0], [4.0 * scale]])
+    expected_angle = np.degrees(np.arccos(np.sum(X * to_src, 0) / np.linalg.norm(X, axis=0)
+                                          / np.linalg.norm(to_src, axis=0)))
+    np.testing.assert_allclose(res.angle[0].ravel(), expected_angle, atol=1e-3)
+    assert res.angle[0].max() > 150 and (res.angle[0] > 90).mean() > 0.5
+
+    def project(Y):
+        x = K @ (src_T[:, :3] @ Y + src_T[:, 3:])
+        return x[:2] / x[2], x[2]
+
+    (p0, z0), (p1, z1) = project(X), project((1 + PARALLAX_STEP) * X)
+    expected = np.where((z0 > 0) & (z1 > 0), np.linalg.norm(p1 - p0, axis=0), 0.0).reshape(16, 16)
+    assert (expected[:4] == 0).all() and (expected[4:] > 1e-3).all()
+    np.testing.assert_allclose(res.parallax[0], expected, rtol=1e-4, atol=1e-6)
+
+
+def test_parallax_step_is_the_geometric_pass_depth_tolerance():
+    """``parallax`` says how far an error as large as the pass tolerates moves a pixel in the source."""
+    from colmap_pvs.consistency import PARALLAX_STEP
+    from colmap_pvs.stereo.config import GeometricConfig
+
+    assert PARALLAX_STEP == GeometricConfig().max_depth_error
+
+
+def test_a_source_without_depth_where_the_pixel_lands_is_not_checked(exact):
+    """Holes (0) in a source's map are no evidence either way: not checked, no agreement, no depth."""
+    ref, src = exact[0], exact[1]
+    holes = src.depth.copy()
+    holes[:, : holes.shape[1] // 2] = 0.0
+    full = _check(ref, [src])
+    res = _check(ref, [SourceMaps(holes, src.normals, src.K, src.cam_from_world)])
+    assert full.checked.sum() > res.checked.sum() > 0
+    lost = full.checked & ~res.checked
+    assert not res.agree[lost].any() and (res.reprojected_depth[lost] == 0).all()
+    assert np.isinf(res.reproj_error[lost]).all() and np.isinf(res.depth_error[lost]).all()
+    empty = _check(ref, [SourceMaps(np.zeros_like(src.depth), src.normals, src.K, src.cam_from_world)])
+    assert not empty.checked.any() and not empty.agree.any()
+
+
+def test_visibility_by_default_consults_every_source_and_its_threshold_is_inclusive(exact):
+    ref, srcs = exact[0], exact[1:]
+    half = np.full((len(srcs), *ref.depth.shape), 0.5, np.float32)
+    full = _check(ref, srcs)
+    for res in (_check(ref, srcs, visibility=half), _check(ref, srcs, visibility=half, min_visibility=0.5)):
+        np.testing.assert_array_equal(res.checked, full.checked)
+        np.testing.assert_array_equal(res.agree, full.agree)
+
+
+def test_the_error_limits_are_inclusive():
+    """``max_reproj_error`` and ``max_depth_error`` are "at most": a pixel exactly at both limits agrees.
+    (A plane at depth 2 seen by a source shifted along x whose map says 2.125: binary fractions, so the
+    errors, 0.25 px and 6.25 %, are exact.)"""
+    K = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    src_T = np.hstack([np.eye(3), [[4.78125], [0.0], [0.0]]])
+    src = SourceMaps(np.full((8, 16), 2.125, np.float32), None, K, src_T)
+    ref = np.full((8, 8), 2.0, np.float32)
+    res = check_consistency(ref, None, K, np.eye(4)[:3], [src], max_reproj_error=0.25, max_depth_error=0.0625)
+    assert res.checked.all()
+    assert (res.reproj_error == 0.25).all() and (res.depth_error == 0.0625).all()
+    assert res.agree.all()
+    assert not check_consistency(ref, None, K, np.eye(4)[:3], [src], max_reproj_error=0.2499,
+                                 max_depth_error=0.0625).agree.any()
+
+
+def test_a_reference_map_that_is_not_2d_is_refused(exact):
+    from colmap_pvs.errors import ShapeError
+
+    ref = exact[0]
+    with pytest.raises(ShapeError, match=r"\(1, 120, 160\)"):
+        check_consistency(ref.depth[None], None, ref.K, ref.cam_from_world, exact[1:])
+
+
+def test_only_pixels_that_land_inside_the_source_map_are_checked():
+    """A source shifted by 2 pixels with a 6 x 6 map: reference columns and rows 2-7 land in its columns and
+    rows 0-5 (edges included) and agree; the others land outside (negative or past the end) and are not
+    checked."""
+    K = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    shifted = np.hstack([np.eye(3), [[-4.0], [-4.0], [0.0]]])
+    src = SourceMaps(np.full((6, 6), 2.0, np.float32), None, K, shifted)
+    res = check_consistency(np.full((10, 10), 2.0, np.float32), None, K, np.eye(4)[:3], [src])
+    inside = np.zeros((10, 10), bool)
+    inside[2:8, 2:8] = True
+    np.testing.assert_array_equal(res.checked[0], inside)
+    np.testing.assert_array_equal(res.agree[0], inside)
