@@ -82,7 +82,8 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         return
     at = items.index(own[0])
     items[:] = [item for item in items if not item.get_closest_marker("own_process")]
-    items.insert(at, OwnProcess.from_parent(session, name="own_process", nodeids=[i.nodeid for i in own]))
+    parent = own[0].getparent(pytest.Module) or session  # named after the (first) module it runs
+    items.insert(at, OwnProcess.from_parent(parent, name="own_process", nodeids=[i.nodeid for i in own]))
 
 
 class OwnProcess(pytest.Item):
