@@ -442,7 +442,8 @@ def _run_sfm(
         except BaseException:
             remove_database(staged)
             raise
-        remove_database(db)
+        for journal in (f"{db}-wal", f"{db}-shm"):  # the old database's; os.replace swaps the file itself
+            Path(journal).unlink(missing_ok=True)
         os.replace(staged, db)
         prog.mark("features")
         prog.stop()
@@ -634,7 +635,7 @@ def _reconstruct(
         st = run_stereo(replace_config(config.stereo, workspace_path=dense,
                                        overwrite="stereo" in prog.overwrite))
         result.stereo_skipped = dict(st.skipped)
-        prog.mark("stereo", inputs=_stereo_inputs(dense))
+        prog.mark("stereo", inputs=stereo_inputs)  # as read before the run: an edit meanwhile is a change
         prog.stop()
     result.previews_path = previews if config.stereo.previews or previews.is_dir() else None
     if config.stop_after == "stereo":

@@ -45,9 +45,19 @@ def _restore_crash_report() -> None:
 
 
 @pytest.hookimpl(tryfirst=True)
-def pytest_runtest_call(item: pytest.Item) -> None:
+def pytest_runtest_setup(item: pytest.Item) -> None:
     """``ray.init`` (in a fixture or an earlier test) installs its own fatal-signal handlers too: put
-    Python's back before every test."""
+    Python's back before every test's setup, call and teardown."""
+    _restore_crash_report()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_call(item: pytest.Item) -> None:
+    _restore_crash_report()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_teardown(item: pytest.Item) -> None:
     _restore_crash_report()
 
 
@@ -64,7 +74,7 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 #: Set in the child process that runs the tests marked ``own_process``.
 OWN_PROCESS_ENV = "COLMAP_PVS_TESTS_OWN_PROCESS"
 #: The longest the child of :class:`OwnProcess` may take (its tests have their own limits too).
-OWN_PROCESS_SECONDS = 1800
+OWN_PROCESS_SECONDS = 900
 
 
 @pytest.hookimpl(trylast=True)
@@ -97,14 +107,23 @@ class OwnProcess(pytest.Item):
         import subprocess
 
         env = {**os.environ, OWN_PROCESS_ENV: "1"}
-        run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *self.nodeids],
-                             cwd=self.config.rootpath, env=env, capture_output=True, text=True,
-                             timeout=OWN_PROCESS_SECONDS)
-        summary = (run.stdout.strip().splitlines() or ["(no output)"])[-1]
+        argv = [sys.executable, "-m", "pytest", "-q", "-ra", "-p", "no:cacheprovider", *self.nodeids]
+        try:
+            run = subprocess.run(argv, cwd=self.config.rootpath, env=env, capture_output=True, text=True,
+                                 timeout=OWN_PROCESS_SECONDS)
+        except subprocess.TimeoutExpired as exc:
+            out = "\n".join(x.decode(errors="replace") if isinstance(x, bytes) else (x or "")
+                            for x in (exc.stdout, exc.stderr))
+            raise OwnProcessFailed(f"{len(self.nodeids)} test(s) in a child pytest ran over "
+                                   f"{OWN_PROCESS_SECONDS} s; its output so far:\n{out[-20000:]}") from None
+        lines = run.stdout.strip().splitlines() or ["(no output)"]
         if run.returncode != 0:
             raise OwnProcessFailed(f"{len(self.nodeids)} test(s) in a child pytest (exit {run.returncode}): "
-                                   f"{summary}\n{run.stdout[-20000:]}\n{run.stderr[-5000:]}")
-        self.add_report_section("call", "child", summary)
+                                   f"{lines[-1]}\n{run.stdout[-20000:]}\n{run.stderr[-5000:]}")
+        skipped = [line for line in lines if line.startswith("SKIPPED")]
+        for line in skipped:  # shown in the suite's own summary, as the child's skips
+            self.warn(pytest.PytestWarning(f"in the child pytest: {line}"))
+        self.add_report_section("call", "child", "\n".join([*skipped, lines[-1]]))
 
     def repr_failure(self, excinfo):
         if isinstance(excinfo.value, OwnProcessFailed):
@@ -156,6 +175,8 @@ def _refuse_writes(event: str, args: tuple) -> None:
         path, mode, flags = args
         writes = any(c in mode for c in "wax+") if isinstance(mode, str) else bool(flags & _WRITE_FLAGS)
         paths = (path,) if writes else ()
+    elif event == "os.mkdir" and args and os.path.isdir(os.fsdecode(args[0])):
+        paths = ()  # as on a read-only disk: an existing folder is only "exists" (mkdir(exist_ok=True))
     else:
         paths = tuple(args[i] for i in _WRITE_EVENTS.get(event, ()) if i < len(args))
     for path in paths:

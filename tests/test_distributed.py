@@ -34,10 +34,10 @@ from colmap_pvs.stereo.ray import TaskGraph, graph_sources, run_task_graph, ster
 #: Ray's native threads outlive ray.shutdown(): these tests run in a child pytest (tests/conftest.py).
 pytestmark = pytest.mark.own_process
 
-#: No test of this module may run longer (SIGALRM): a hang fails instead of stalling CI. Most take under
-#: 50 s on a 2-core machine shared with other test runs (load average 9); the limit is 6 times that.
+#: No test of this module may run longer (SIGALRM): a hang fails instead of stalling CI, with room for a
+#: loaded 2-core machine.
 TEST_SECONDS = 300
-#: Tests that may take longer: the killed-worker test starts its own Ray for each of up to 6 runs.
+#: Tests that may take longer: the killed-worker test starts its own Ray for each of its runs.
 LONGER_SECONDS = {"test_ray_started_by_the_run_survives_a_worker_killed_mid_task": 600}
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -463,3 +464,22 @@ def test_a_failed_feature_extraction_of_an_overwrite_keeps_the_old_database(anal
         reconstruct(reconstruct_config(**flags, max_num_features=500, overwrite=True))
     assert db.read_bytes() == before
     assert sorted(p.name for p in db.parent.glob("database.db*")) == ["database.db"]
+
+
+def test_the_state_of_a_folder_does_not_depend_on_where_it_is(tmp_path):
+    """``reconstruct --workspace_path out`` and then ``$PWD/out`` (or a moved project) is the same workspace:
+    its fusion and mesh are not made again."""
+    from colmap_pvs.io.files import files_state_sha256
+
+    a = tmp_path / "a" / "dense"
+    (a / "images" / "cam0").mkdir(parents=True)
+    (a / "images" / "cam0" / "x.png").write_bytes(b"x")
+    (a / "sparse").mkdir()
+    b = tmp_path / "b" / "dense"
+    shutil.copytree(a, b)  # times kept
+    state = files_state_sha256([a / "images", a / "sparse"])
+    assert files_state_sha256([b / "images", b / "sparse"]) == state
+    assert files_state_sha256([Path(os.path.relpath(a, Path.cwd())) / "images", a / "sparse"]) == state
+    (b / "images" / "cam0" / "x.png").write_bytes(b"y")
+    assert files_state_sha256([b / "images", b / "sparse"]) != state
+    assert files_state_sha256([a / "sparse", a / "images"]) != state  # which folder a file is in counts

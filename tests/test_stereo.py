@@ -1090,3 +1090,22 @@ def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synth
     with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
         run_stereo(stereo_config(**flags, overwrite=True))
     assert "geom_min_triangulation_angle" not in caplog.text
+
+
+def test_a_record_of_an_older_colmap_pvs_is_named_as_such(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
+    """A record without the images' hashes recomputes once, saying why (not "depth range changed")."""
+    ws = _copy(synthetic_ws, tmp_path)
+    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=2, max_image_size=32,
+                        geom_consistency=False)
+    names = sorted(run_stereo(cfg).processed)
+    record = ws / "stereo" / "provenance" / f"{names[0]}.photometric.json"
+    old = json.loads(record.read_text())
+    for key in ("image_sha256", "source_image_sha256", "camera", "source_cameras", "pose", "source_poses"):
+        del old["settings"][key]
+    old["settings"]["depth_range"] = [v * (1 + 1e-12) for v in old["settings"]["depth_range"]]  # unrounded
+    old["fingerprint"] = stereo_outputs.fingerprint(old["settings"])
+    record.write_text(json.dumps(old))
+    caplog.set_level("INFO", logger="colmap_pvs")
+    assert run_stereo(cfg).processed == [names[0]]
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("stereo photometric:"))
+    assert f"recorded by an older colmap-pvs (without the images' hashes): {names[0]}" in line, line

@@ -48,16 +48,17 @@ def files_state_sha256(paths: list[str | Path]) -> str:
     recursively; a missing path counts as missing): changes whenever one of them is written, added or
     removed, without reading their content."""
     digest = hashlib.sha256()
-    for root in map(Path, paths):
+    for i, root in enumerate(map(Path, paths)):  # names relative to each path: a moved folder is the same
         found = sorted(root.rglob("*")) if root.is_dir() else [root]
         for path in found:
+            name = f"{i}/{path.relative_to(root).as_posix()}"
             try:
                 st = path.stat()
             except OSError:
-                digest.update(f"{path}\0missing\n".encode())
+                digest.update(f"{name}\0missing\n".encode())
                 continue
             if path.is_file():
-                digest.update(f"{path}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+                digest.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return digest.hexdigest()
 
 

@@ -600,7 +600,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
     except BaseException:
         remove_database(db_path)
         raise
-    remove_database(final_db)
+    for journal in (f"{final_db}-wal", f"{final_db}-shm"):  # the old database's; os.replace swaps the file
+        Path(journal).unlink(missing_ok=True)
     os.replace(db_path, final_db)
     save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config),
                 focal_lengths_refined=refine)

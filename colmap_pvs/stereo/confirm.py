@@ -92,7 +92,8 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
             return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
         why = "--overwrite"
     elif same:
-        why = "its geometric maps were rewritten"
+        why = ("its geometric maps were rewritten" if confirm_map_path(ws, name).is_file()
+               else "its confirmed pixels are missing")
     elif record is None:  # a first run, or new geometric maps (their pass removes the record)
         why = "its geometric maps are new"
     else:

@@ -132,6 +132,8 @@ def change_reason(old: dict | None, new: dict, stage: Stage) -> str:
     before = old.get("settings")
     if not isinstance(before, dict):
         return "no readable record"
+    if stage == "photometric" and "image_sha256" not in before:  # before the inputs were recorded
+        return "recorded by an older colmap-pvs (without the images' hashes)"
     words: list[str] = []
     older = False
     for key in sorted(set(new) | set(before)):
