@@ -582,6 +582,10 @@ def _reconstruct(
     fused = dense / "fused.ply"
     meshed = dense / DEFAULT_MESH_NAME
     result.dense_path = dense
+    staged, old = root / f".{dense.name}.new", root / f".{dense.name}.old"  # undistort's swap (below)
+    if dense.is_dir():  # what a run killed while swapping left beside a complete workspace
+        for leftover in (staged, old):
+            shutil.rmtree(leftover, ignore_errors=True)
     have_dense = "undistort" not in prog.overwrite
     if have_dense:
         try:
@@ -593,7 +597,6 @@ def _reconstruct(
     else:
         prog.start("undistort")
         # the new workspace is made beside the old one, which goes only once it is complete
-        staged, old = root / f".{dense.name}.new", root / f".{dense.name}.old"
         for leftover in (staged, old):  # of a run killed while swapping
             shutil.rmtree(leftover, ignore_errors=True)
         undistort(

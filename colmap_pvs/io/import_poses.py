@@ -487,6 +487,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
     image_dir = Path(config.image_path)
     out = Path(config.output_path)
     model_dir = out / "sparse"
+    final_db, db_path = out / "database.db", out / "database.db.new"  # the new one replaces the old
+    remove_database(db_path)  # what a killed run left
     if not config.overwrite and all(
         (model_dir / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")
     ):
@@ -518,8 +520,6 @@ def import_poses(config: ImportPosesConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     # The old model, its record and database stay until the new ones are complete (a failure, a full
     # disk, keeps them as they were): the new database is built beside the old one.
-    final_db, db_path = out / "database.db", out / "database.db.new"
-    remove_database(db_path)  # what a killed run left
     try:
         t0 = time.perf_counter()
         groups = _camera_groups(cams, sizes)
