@@ -27,7 +27,7 @@ def _normalise(name: str) -> str:
     return re.sub(r"[-_.]+", "-", name).lower()
 
 
-def _pyproject() -> dict:
+def read_pyproject() -> dict:
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10: the test extra brings tomli
@@ -76,7 +76,7 @@ def third_party_imports() -> dict[str, set[str]]:
 
 def declared() -> dict[str, set[str]]:
     """``{"": core dependencies, EXTRA: its requirements}``, as normalised distribution names."""
-    project = _pyproject()["project"]
+    project = read_pyproject()["project"]
     out = {"": {_requirement_name(r) for r in project["dependencies"]}}
     for extra, requirements in project.get("optional-dependencies", {}).items():
         out[extra] = {_requirement_name(r) for r in requirements}
@@ -86,7 +86,7 @@ def declared() -> dict[str, set[str]]:
 def conditional() -> set[str]:
     """Requirements with an environment marker (``tomli>=2; python_version < '3.11'``): their module may be
     absent where the marker does not hold."""
-    project = _pyproject()["project"]
+    project = read_pyproject()["project"]
     requirements = [*project["dependencies"], *sum(project.get("optional-dependencies", {}).values(), [])]
     return {_requirement_name(r) for r in requirements if ";" in r}
 

@@ -304,26 +304,10 @@ def test_no_library_file_over_the_line_limit():
     assert not long, f"library files over {MAX_LINES} lines: {long}"
 
 
-def _setuptools_packages(text: str) -> list[str]:
-    """``[tool.setuptools] packages`` of a pyproject.toml, read without ``tomllib`` (Python 3.10 has
-    none): the table's ``packages = [...]`` array of strings (comments and trailing commas allowed)."""
-    table = re.search(r"^\[tool\.setuptools\][ \t]*$(.*?)(?=^\[|\Z)", text, flags=re.M | re.S)
-    assert table, "pyproject.toml has no [tool.setuptools] table"
-    array = re.search(r"^packages\s*=\s*\[(.*?)\]", table.group(1), flags=re.M | re.S)
-    assert array, "[tool.setuptools] has no packages = [...] list"
-    items = re.sub(r"#[^\n]*", "", array.group(1))
-    return list(ast.literal_eval(f"[{items}]"))
-
-
 def test_every_package_is_installed():
-    text = (REPO_ROOT / "pyproject.toml").read_text(encoding="utf-8")
-    installed = _setuptools_packages(text)
-    try:
-        import tomllib
-    except ImportError:  # Python 3.10: the reader above is all there is
-        tomllib = None
-    if tomllib is not None:  # the reader above reads what a TOML parser reads
-        assert installed == tomllib.loads(text)["tool"]["setuptools"]["packages"]
+    from test_dependencies import read_pyproject  # tomllib, or tomli (the test extra's) on Python 3.10
+
+    installed = read_pyproject()["tool"]["setuptools"]["packages"]
     packages = {m for m, path in LIBRARY_FILES.items() if path.name == "__init__.py"}
     missing = sorted(packages - set(installed))
     assert len(installed) > 5 and not missing, f"packages missing from pyproject.toml: {missing}"
