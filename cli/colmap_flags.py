@@ -15,7 +15,7 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from colmap_pvs.config import parse_bool
+from colmap_pvs.config import check_threads, parse_bool
 from colmap_pvs.errors import ConfigError
 
 logger = logging.getLogger("colmap_pvs.cli")
@@ -85,12 +85,18 @@ def _depth_range(given: dict[str, str]) -> dict[str, Any]:
         (flag, value), = bounds.items()
         other = next(n for n in names if n != flag)
         raise ConfigError(f"--{flag} {value:g} needs --{other} too: a fixed depth range takes both bounds")
-    return {"depth_range": (bounds[names[0]], bounds[names[1]])}
+    low, high = bounds[names[0]], bounds[names[1]]
+    if not 0 < low < high:  # COLMAP takes a minimum of 0; a depth of 0 is no depth to sweep here
+        raise ConfigError(f"--{names[0]} {low:g} --{names[1]} {high:g}: a fixed depth range needs "
+                          "0 < depth_min < depth_max (or -1 for each image's range from its sparse points)")
+    return {"depth_range": (low, high)}
 
 
 def _num_threads(flag: str, text: str) -> dict[str, Any]:
     """= --threads (COLMAP's -1, all cores, is our 0)"""
     n = _int(flag, text)
+    if n != -1:
+        check_threads(f"--{flag}", n, auto=-1)  # named as the user typed it, with COLMAP's -1
     return {"threads": max(n, 0)}  # COLMAP's -1 (all cores) is torch's default, our 0
 
 

@@ -4,6 +4,7 @@ OS errors as one line."""
 from __future__ import annotations
 
 import errno
+import re
 
 import pytest
 
@@ -149,3 +150,15 @@ def test_os_errors_are_one_line(tmp_path, monkeypatch, capsys):
     assert main(["select-views", "--workspace_path", str(tmp_path)]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "No space left on device" in err and "x.bin" in err
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--PatchMatchStereo.num_threads", "100000"],
+     r"--PatchMatchStereo\.num_threads must be -1 \(all cores\)"),
+    (["--PatchMatchStereo.depth_min", "0", "--PatchMatchStereo.depth_max", "10"],
+     r"--PatchMatchStereo\.depth_min 0 --PatchMatchStereo\.depth_max 10: .*0 < depth_min < depth_max"),
+])
+def test_a_bad_colmap_value_is_named_as_the_user_typed_it(flags, message, tmp_path, capsys):
+    """Not as the colmap-pvs flag it becomes (``threads``, ``depth_range``), with COLMAP's values."""
+    assert main(["patch_match_stereo", "--workspace_path", str(tmp_path), *flags]) == 1
+    assert re.search(message, capsys.readouterr().err)
