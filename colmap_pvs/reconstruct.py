@@ -38,7 +38,7 @@ from .confidence import calibration_path, load_calibration
 from .config import check_threads, config_to_dict, replace_config, save_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
-from .io.files import atomic_write_bytes, file_sha256, files_state_sha256, remove_database
+from .io.files import atomic_write_bytes, cached_file_hashes, file_sha256, files_state_sha256, remove_database
 from .io.images import check_image_file, check_image_format
 from .io.workspace import fusion_inputs_sha256, set_aside_foreign_output
 from .stereo.config import FORMAT_VERSIONS, StereoConfig, map_settings
@@ -236,14 +236,18 @@ def _model_dir_ok(path: Path) -> bool:
 # --------------------------------------------------------------------------- provenance
 
 
-def _photos_fingerprint(folder: Path, names: list[str]) -> dict:
+#: The photos' hashes of the last run, by name, size and modification time (a resume reads no photo again).
+PHOTO_HASHES = "photos_sha256.json"
+
+
+def _photos_fingerprint(hashes: dict[str, list]) -> dict:
     """The photos' names and sizes (``sha256``) and their content (``content_sha256``: a photo edited in
     place, same size and name, is a change too)."""
     digest, content = hashlib.sha256(), hashlib.sha256()
-    for name in names:
-        digest.update(f"{name}\0{(folder / name).stat().st_size}\n".encode())
-        content.update(f"{name}\0{file_sha256(folder / name)}\n".encode())
-    return {"count": len(names), "sha256": digest.hexdigest(), "content_sha256": content.hexdigest()}
+    for name, (size, _, sha) in hashes.items():
+        digest.update(f"{name}\0{size}\n".encode())
+        content.update(f"{name}\0{sha}\n".encode())
+    return {"count": len(hashes), "sha256": digest.hexdigest(), "content_sha256": content.hexdigest()}
 
 
 def _photos_differ(old, new: dict) -> bool:
@@ -256,12 +260,6 @@ def _photos_differ(old, new: dict) -> bool:
 
 #: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
 LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
-
-
-def _stereo_inputs(dense: Path) -> str:
-    """What the stereo step reads besides its settings, by file name, size and time: the undistorted
-    images, the sparse model and ``stereo/patch-match.cfg``."""
-    return files_state_sha256([dense / "images", dense / "sparse", dense / "stereo" / "patch-match.cfg"])
 
 
 def _remove_stale(path: Path) -> None:
@@ -282,9 +280,10 @@ def _calibration_sha256(checkpoint: Path) -> str | None:
     return load_calibration(path).sha256() if path.is_file() else None
 
 
-def _current_settings(config: ReconstructConfig, names: list[str], checkpoint: Path) -> dict[str, dict]:
+def _current_settings(config: ReconstructConfig, photos: dict[str, list],
+                      checkpoint: Path) -> dict[str, dict]:
     values = {
-        "photos": _photos_fingerprint(Path(config.image_path), names),
+        "photos": _photos_fingerprint(photos),
         "input_path": str(Path(config.input_path).resolve()) if config.input_path is not None else None,
         "checkpoint_sha256": _sha256_or_none(checkpoint),
         "calibration_sha256": _calibration_sha256(checkpoint),
@@ -519,11 +518,14 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     )
     prog = _Progress(root, result)
     checkpoint = Path(config.stereo.checkpoint or DEFAULT_CHECKPOINT)
-    prog.settings = _current_settings(config, names, checkpoint)
+    photos = cached_file_hashes(Path(config.image_path), names, prog.markers / PHOTO_HASHES)
+    prog.settings = _current_settings(config, photos, checkpoint)
     _check_provenance(config, prog, root)  # before anything is written
     root.mkdir(parents=True, exist_ok=True)
     remove_orphan_temps(root)
     remove_orphan_temps(prog.markers)
+    prog.markers.mkdir(exist_ok=True)
+    atomic_write_bytes(prog.markers / PHOTO_HASHES, json.dumps(photos).encode())
     save_config(config, root / "colmap_pvs_reconstruct.json")
     from .io.pycolmap_output import (  # pycolmap itself is imported only inside io/
         pycolmap_log_to_file,
@@ -618,7 +620,8 @@ def _reconstruct(
         return
 
     previews = dense / "stereo" / "previews"
-    stereo_inputs = _stereo_inputs(dense)
+    # what stereo reads besides its settings (by file name, size and time)
+    stereo_inputs = files_state_sha256([dense / "images", dense / "sparse", dense / "stereo/patch-match.cfg"])
     if prog.done("stereo") and prog.recorded("stereo", "inputs") != stereo_inputs:
         # the undistorted images, the model or patch-match.cfg changed since (or an older marker without
         # their record): stereo resumes, recomputing the maps whose inputs changed

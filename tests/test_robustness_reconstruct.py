@@ -392,9 +392,15 @@ def _write_stored_png(path, image) -> None:
     assert cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 0])
 
 
-def test_a_photo_edited_in_place_is_a_changed_input(analytic_scene, tmp_path):
+def test_a_photo_edited_in_place_is_a_changed_input(analytic_scene, tmp_path, monkeypatch):
     """A photo painted over with its name and size unchanged was taken for the same photo; the models and
-    maps made from the old one were kept."""
+    maps made from the old one were kept. A resume reads only the photos whose size or time changed."""
+    import colmap_pvs.io.files as files
+
+    hashed = []
+    real_sha256 = files.file_sha256
+    monkeypatch.setattr(files, "file_sha256",
+                        lambda path: hashed.append(Path(path).name) or real_sha256(path))
     ws = analytic_scene["root"]
     images = tmp_path / "photos"
     images.mkdir()
@@ -404,6 +410,10 @@ def test_a_photo_edited_in_place_is_a_changed_input(analytic_scene, tmp_path):
                  stop_after="undistort")
     reconstruct(reconstruct_config(**flags))
     photo = sorted(images.iterdir())[1]
+    assert len(hashed) == 5
+    hashed.clear()
+    reconstruct(reconstruct_config(**flags))
+    assert hashed == []
     size = photo.stat().st_size
     image = cv2.imread(str(photo))
     image[:, : image.shape[1] // 3] = (0, 0, 255)
@@ -411,6 +421,7 @@ def test_a_photo_edited_in_place_is_a_changed_input(analytic_scene, tmp_path):
     assert photo.stat().st_size == size
     with pytest.raises(ConfigError, match=r"the photos .*content changed.*--overwrite"):
         reconstruct(reconstruct_config(**flags))
+    assert hashed == [photo.name]
     reconstruct(reconstruct_config(**flags, overwrite=True))
     assert "undistort" in reconstruct(reconstruct_config(**flags)).resumed
 

@@ -12,6 +12,7 @@ This module depends only on the standard library and :mod:`colmap_pvs.errors`: i
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import socket
 import tempfile
@@ -22,6 +23,7 @@ from ..errors import OutputError
 
 __all__ = [
     "atomic_write_bytes",
+    "cached_file_hashes",
     "current_umask",
     "file_sha256",
     "files_state_sha256",
@@ -60,6 +62,24 @@ def files_state_sha256(paths: list[str | Path]) -> str:
             if path.is_file():
                 digest.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return digest.hexdigest()
+
+
+def cached_file_hashes(folder: Path, names: list[str], record: Path) -> dict[str, list]:
+    """``{name: [size, mtime_ns, sha256]}`` of the files ``names`` in ``folder``, the hash taken from
+    ``record`` (a JSON file of the same form, written by the caller) where a file's size and time are
+    unchanged: a resume reads no file again."""
+    try:
+        known = json.loads(record.read_text())
+    except (OSError, ValueError):
+        known = {}
+    hashes = {}
+    for name in names:
+        st = (folder / name).stat()
+        entry = known.get(name) if isinstance(known, dict) else None
+        if not (isinstance(entry, list) and entry[:2] == [st.st_size, st.st_mtime_ns]):
+            entry = [st.st_size, st.st_mtime_ns, file_sha256(folder / name)]
+        hashes[name] = entry
+    return hashes
 
 
 def remove_database(path: str | Path) -> None:
