@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import re
+import warnings
 from pathlib import Path
 
 import cv2
@@ -82,10 +84,13 @@ def test_typed_maps_round_trip(tmp_path: Path) -> None:
     write_normal_map(tmp_path / "n.bin", normals)
     np.testing.assert_array_equal(read_depth_map(tmp_path / "d.bin"), depth)
     np.testing.assert_array_equal(read_normal_map(tmp_path / "n.bin"), normals.astype(np.float32))
-    with pytest.raises(MapFormatError, match="expected 1"):
+    with pytest.raises(MapFormatError, match="it has 3 channels, expected 1"):
         read_depth_map(tmp_path / "n.bin")
-    with pytest.raises(MapFormatError, match="expected 3"):
+    with pytest.raises(MapFormatError, match="it has 1 channels, expected 3"):
         read_normal_map(tmp_path / "d.bin")
+    write_array(tmp_path / "four.bin", np.zeros((2, 3, 4), dtype=np.float32))
+    with pytest.raises(MapFormatError, match="it has 4 channels, expected 3"):
+        read_normal_map(tmp_path / "four.bin")
 
 
 @pytest.mark.parametrize(
@@ -96,6 +101,7 @@ def test_typed_maps_round_trip(tmp_path: Path) -> None:
         (write_depth_map, np.ones((4, 4, 1)), ShapeError, r"\[H, W\]"),
         (write_normal_map, np.full((4, 4, 3), 0.5), MapFormatError, "neither unit nor zero"),
         (write_normal_map, np.ones((4, 4)), ShapeError, r"\[H, W, 3\]"),
+        (write_normal_map, np.zeros((4, 4, 2)), ShapeError, r"\[H, W, 3\]"),
         (write_array, np.ones((2, 2, 2, 2)), ShapeError, "shape"),
         (write_array, np.array([["a"]]), ShapeError, "dtype"),
     ],
@@ -111,7 +117,8 @@ def _corrupt_cases() -> dict[str, tuple[bytes, str]]:
     return {
         "truncated": (good[:-5], "truncated.*48 payload bytes, found 43"),
         "trailing": (good + b"\0\0\0\0", "trailing data.*48 payload bytes, found 52"),
-        "no_header": (b"\x00" * 80, "no 'W&H&C&' header"),
+        "no_header": (b"\x00" * 80, re.escape(f"header in its first 64 bytes (starts with {bytes(24)!r})")),
+        "header_past_64_bytes": (b"4&3&" + b"0" * 59 + b"1&" + good[6:], "no 'W&H&C&' header in its first"),
         "bad_number": (b"4&x&1&" + good[6:], "malformed header"),
         "zero_size": (b"0&3&1&", "non-positive"),
         "empty": (b"", "no 'W&H&C&' header"),
@@ -207,3 +214,52 @@ def test_read_error_names_unreadable_path(tmp_path: Path) -> None:
     with pytest.raises(MapFormatError) as info:
         read_array(folder)
     assert os.fspath(folder) in str(info.value)
+
+
+def test_a_header_within_64_bytes_is_read(tmp_path: Path) -> None:
+    header = b"4&3&" + b"0" * 58 + b"1&"  # the third '&' is the 64th byte
+    assert len(header) == 64
+    (tmp_path / "a.bin").write_bytes(header + np.arange(12, dtype="<f4").tobytes())
+    np.testing.assert_array_equal(read_array(tmp_path / "a.bin"), np.arange(12).reshape(3, 4))
+
+
+def test_write_errors_count_the_offending_values(tmp_path: Path) -> None:
+    depth = np.array([[0.0, 0.5, -1.0], [2.0, -0.25, 0.0]])
+    with pytest.raises(MapFormatError, match=r": 2 negative depths \(min -1.0\)"):
+        write_depth_map(tmp_path / "d.bin", depth)
+    normals = np.zeros((3, 4, 3))
+    normals[..., 2] = -1.0
+    normals[2, 1] = [0.0, 0.0, -2.0]
+    with pytest.raises(MapFormatError, match=r": 1 normals are neither unit nor zero \(norms range 2..2\)"):
+        write_normal_map(tmp_path / "n.bin", normals)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_depth_colours_follow_the_turbo_map_between_vmin_and_vmax() -> None:
+    depth = np.array([[1.0, 2.0, 3.0, 4.0, 5.0, 9.0, -2.0]])  # 9 clips to vmax's colour; -2 is invalid
+    index = np.array([[0, 64, 128, 191, 255, 255, 0]], dtype=np.uint8)
+    expected = cv2.applyColorMap(index, cv2.COLORMAP_TURBO)
+    expected[0, -1] = 0
+    np.testing.assert_array_equal(colorize_depth(depth, 1.0, 5.0), expected)
+    # by default vmin / vmax are the 2nd / 98th percentiles of the valid depths
+    ramp = np.linspace(1.0, 101.0, 101)[None]
+    np.testing.assert_array_equal(colorize_depth(ramp), colorize_depth(ramp, 3.0, 99.0))
+    # a flat map has one colour, vmin's, without numpy warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        flat = colorize_depth(np.full((3, 4), 2.5))
+    assert (flat == cv2.applyColorMap(np.zeros((1, 1), np.uint8), cv2.COLORMAP_TURBO)[0, 0]).all()
+
+
+def test_normal_preview_colours_and_saturation(tmp_path: Path) -> None:
+    # out-of-range components saturate, never wrap around
+    normals = np.array([[[0.6, 0.0, -0.8], [1.5, -1.5, -1.0]]])
+    rgb = _read_png(save_normal_preview(tmp_path / "n.png", normals))[:, :, ::-1]
+    assert rgb.tolist() == [[[204, 128, 25], [255, 0, 0]]]  # 0.2 * 127.5 is just below 25.5
+
+
+@pytest.mark.parametrize("shape", [(4, 5), (4, 5, 2), (4, 5, 4), (4, 5, 3, 1)])
+def test_normal_preview_refuses_other_shapes(tmp_path: Path, shape: tuple[int, ...]) -> None:
+    with pytest.raises(ShapeError, match=r"\[H, W, 3\]"):
+        save_normal_preview(tmp_path / "n.png", np.zeros(shape))
+    assert list(tmp_path.iterdir()) == []

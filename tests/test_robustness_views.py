@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 import pytest
-from test_views import make_model
+from test_views import depths_model, make_model
 
 from colmap_pvs.views import ViewSelectionConfig, compute_depth_range, select_views
 
@@ -93,3 +93,31 @@ def test_only_outlier_hints_are_dropped():
     out = drop_outlier_hints(hints.copy(), (4.0, 8.0))
     # just outside the range (3.5, 9, 2.5): kept, a near wall is real; 2x outside (30, 1): dropped
     np.testing.assert_array_equal(out, [[5.0, 3.5, 0.0, 0.0, 0.0, 9.0, 2.5]])
+
+
+def test_the_outlier_threshold_is_three_robust_sigmas_of_log_depth():
+    """Log depths 0, +-0.5 (10 each) around log 4: median 0, MAD 0.5, sigma 1.4826 * 0.5, so a point
+    2.1 from the median is kept and one 2.4 away (beyond 3 sigma = 2.22, and beyond factor 5) is not."""
+    offsets = [0.0] * 10 + [0.5] * 10 + [-0.5] * 10
+    cfg = ViewSelectionConfig(depth_percentiles=(0.0, 100.0), depth_margin=0.0)
+    for last, dmax in [(2.1, 4.0 * np.exp(2.1)), (2.4, 4.0 * np.exp(0.5))]:
+        model, image = depths_model(4.0 * np.exp(np.array([*offsets, last])))
+        assert compute_depth_range(model, image, cfg) == pytest.approx((4.0 * np.exp(-0.5), dmax))
+
+
+def test_a_point_exactly_min_factor_from_the_median_is_kept():
+    """The doc's closed interval ``[median / f, median * f]``: depth 5 with the rest at 1 (sigma 0) stays."""
+    cfg = ViewSelectionConfig(depth_percentiles=(0.0, 100.0), depth_margin=0.0, depth_outlier_min_factor=5.0)
+    model, image = depths_model([1.0] * 19 + [5.0])
+    assert compute_depth_range(model, image, cfg) == pytest.approx((1.0, 5.0))
+    model, image = depths_model([1.0] * 19 + [5.001])
+    assert compute_depth_range(model, image, cfg) == pytest.approx((0.99, 1.01))
+
+
+def test_outliers_are_looked_for_from_four_points_on():
+    cfg = ViewSelectionConfig(min_points=3, depth_percentiles=(0.0, 100.0), depth_margin=0.0,
+                              depth_outlier_max_fraction=0.3)
+    model, image = depths_model([2.0, 2.2, 2.4, 200.0])
+    assert compute_depth_range(model, image, cfg) == pytest.approx((2.0, 2.4))
+    model, image = depths_model([2.0, 2.4, 200.0])  # too few to tell an outlier from the scene
+    assert compute_depth_range(model, image, cfg) == pytest.approx((2.0, 200.0))

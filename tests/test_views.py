@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -286,6 +287,61 @@ def test_no_candidate_source_is_skipped(caplog):
         sel = select_views(model, ViewSelectionConfig(min_points=5))
     assert [s.name for s in sel.skipped] == ["img_003.jpg"]
     assert "shares" in sel.skipped[0].reason
+
+
+def depths_model(depths, observed_ids=None, point_ids=None) -> tuple[SparseModel, Image]:
+    """One image at the origin looking down +z (``[I | 0]``) and points on its axis at exactly ``depths``;
+    the image observes ``observed_ids`` (default: every point)."""
+    xyz = np.stack([np.zeros(len(depths)), np.zeros(len(depths)), np.asarray(depths, float)], axis=1)
+    model = make_model(np.array([[5.0, 0, 0]]), xyz, [[1]] * len(depths), point_ids=point_ids)
+    ids = model.points.ids if observed_ids is None else np.asarray(observed_ids, dtype=np.int64)
+    image = dataclasses.replace(model.images[1], cam_from_world=np.eye(3, 4), point3D_ids=ids)
+    return model, image
+
+
+def test_points_at_one_depth_get_a_range_one_percent_wide():
+    model, image = depths_model([2.0] * 12)
+    cfg = ViewSelectionConfig(depth_percentiles=(0.0, 100.0), depth_margin=0.0)
+    assert compute_depth_range(model, image, cfg) == pytest.approx((1.98, 2.02), rel=1e-12)
+
+
+def test_an_image_with_exactly_min_points_gets_a_range(caplog):
+    model, image = depths_model(np.linspace(2.0, 3.0, 10))
+    assert compute_depth_range(model, image, ViewSelectionConfig(min_points=10)) is not None
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs.views"):
+        assert compute_depth_range(model, image, ViewSelectionConfig(min_points=11)) is None
+    assert "observes 10 sparse point(s)" in caplog.text
+    # a single observed point is enough where min_points is 1
+    one, image1 = depths_model([4.0])
+    cfg = ViewSelectionConfig(min_points=1, depth_percentiles=(0.0, 100.0), depth_margin=0.0)
+    assert compute_depth_range(one, image1, cfg) == pytest.approx((3.96, 4.04))
+
+
+def test_points_on_or_just_behind_the_camera_plane_do_not_count():
+    model, image = depths_model([-0.5, 0.0, 2.0, 2.5, 3.0])
+    cfg = ViewSelectionConfig(min_points=3, depth_percentiles=(0.0, 100.0), depth_margin=0.0)
+    assert compute_depth_range(model, image, cfg) == pytest.approx((2.0, 3.0))
+    assert compute_depth_range(model, image, dataclasses.replace(cfg, min_points=4)) is None
+
+
+def test_observed_ids_missing_from_the_model_are_dropped_with_a_debug_note(caplog):
+    """A track that names points the model no longer has (a filtered or edited model): the known
+    points give the range, the rest are counted at DEBUG."""
+    cfg = ViewSelectionConfig(min_points=3, depth_percentiles=(0.0, 100.0), depth_margin=0.0)
+    model, image = depths_model([2.0, 2.5, 3.0], observed_ids=[7, 100, 101, 102, 5000, 9])
+    with caplog.at_level(logging.DEBUG, logger="colmap_pvs.views"):
+        assert compute_depth_range(model, image, cfg) == pytest.approx((2.0, 3.0))
+    assert "3 observed point ids are not in the model's points" in caplog.text
+    caplog.clear()
+    model, image = depths_model([2.0, 2.5, 3.0])
+    with caplog.at_level(logging.DEBUG, logger="colmap_pvs.views"):
+        compute_depth_range(model, image, cfg)
+    assert "not in the model's points" not in caplog.text
+    # a model without points at all: no range, with the warning, not a crash
+    empty, image = depths_model([], observed_ids=[100, 101, 102])
+    with caplog.at_level(logging.WARNING, logger="colmap_pvs.views"):
+        assert compute_depth_range(empty, image, cfg) is None
+    assert "observes 0 sparse point(s)" in caplog.text
 
 
 # --------------------------------------------------------------------------- selection and resolution
