@@ -437,6 +437,7 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     np.testing.assert_array_equal(geo[dropped > 0], dropped[dropped > 0])  # the checked pixels as they were
     conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
     assert conf[added].min() > 0 and conf[added].max() <= stereo_geometric.SPLAT_CONFIDENCE
+    assert conf[added].max() < np.median(conf[dropped > 0])  # ranked below the checked pixels
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["settings"]["geom_splat_min_sources"] == 3
     assert set(prov["settings"]["splat_seeds"]) <= set(names)
@@ -462,6 +463,92 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
     assert stamps == {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
+
+
+def test_geometric_check_visibility_follows_the_network_sources():
+    """The learned visibility of each checked source is the network's map of that source (upsampled to the
+    depth map); a checked source the network did not see counts as visible; maps that do not match the
+    network's sources are not used."""
+    coarse = np.stack([np.full((3, 4), 0.25, np.float32), np.full((3, 4), 0.75, np.float32)])
+    vis = stereo_geometric._check_visibility(coarse, ["a", "b"], ["b", "c", "a"], (6, 8))
+    assert vis.shape == (3, 6, 8)
+    np.testing.assert_allclose(vis[0], 0.75)
+    np.testing.assert_allclose(vis[1], 1.0)
+    np.testing.assert_allclose(vis[2], 0.25)
+    assert stereo_geometric._check_visibility(coarse, ["a"], ["a"], (6, 8)) is None
+    assert stereo_geometric._check_visibility(coarse, ["a", "b", "c"], ["a"], (6, 8)) is None
+
+
+def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(analytic_scene, tmp_path,
+                                                                              tiny_checkpoint):
+    """A block of the reference 2 % too far passes the check (3 %): with ``geom_average_depth`` it takes
+    the mean of its depth and the confirming sources' (exact) ones, without it its own depth;
+    ``geom_min_confidence`` drops the pixels below it, the rest as they were; too few sources with
+    photometric maps skip the pass."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.02)
+    names = analytic_scene["names"]
+    ref, truth = names[0], exact[names[0]]
+    maps, confs = ws / "stereo" / "depth_maps", ws / "stereo" / "confidence_maps"
+    photo = read_depth_map(maps / f"{ref}.photometric.bin")
+    block = np.zeros_like(truth, bool)
+    block[40:70, 60:100] = True
+    on = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0, overwrite=True)
+
+    def geometric(**changes):
+        ctx = stereo_module.prepare_stereo(replace_config(on, **changes))
+        out = stereo_module.process_reference(ctx, ref, "geometric")
+        ctx.close()
+        if out.status != "computed":
+            return out
+        return read_depth_map(maps / f"{ref}.geometric.bin"), read_array(confs / f"{ref}.geometric.bin")
+
+    geo, conf = geometric()
+    kept = block & (geo > 0)
+    assert kept.sum() > 0.5 * block.sum()
+    assert np.median(np.abs(geo[kept] / truth[kept] - 1)) < 0.01  # 2 % off, averaged with exact sources
+    prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
+    assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
+    own, _ = geometric(geom_average_depth=False)
+    np.testing.assert_array_equal(own[own > 0], photo[own > 0])
+    threshold = float(np.median(conf[geo > 0]))
+    strict, strict_conf = geometric(geom_min_confidence=threshold)
+    assert 0.2 * (geo > 0).sum() < (strict > 0).sum() < 0.8 * (geo > 0).sum()
+    assert strict_conf[strict > 0].min() >= threshold
+    np.testing.assert_array_equal(strict_conf[strict > 0], conf[strict > 0])
+    # One source with photometric maps, where geom_min_consistent (2) must agree: skipped, not computed.
+    source = prov["sources"][0]
+    for name in names:
+        if name not in (ref, source):
+            (maps / f"{name}.photometric.bin").unlink()
+    out = geometric()
+    assert out.status == "skipped" and out.reason.startswith("1 of its sources have photometric maps")
+
+
+def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(analytic_scene, tmp_path,
+                                                                           tiny_checkpoint, monkeypatch):
+    """In a run, a reference checked for another reference's seeds is not checked again for its own pass;
+    a later pass reads its sources' current seed maps instead of checking them again, unless
+    ``overwrite``."""
+    ws, cfg, _ = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    names, ref = analytic_scene["names"], analytic_scene["names"][0]
+    calls = []
+    real = stereo_geometric.check_consistency
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stereo_geometric, "check_consistency", counted)
+    on = replace_config(cfg, geom_consistency=True, geom_fill=False, geom_splat_min_sources=3)
+    res = run_stereo(on)
+    assert sorted(res.geometric_processed) == sorted(names) and len(calls) == len(names)
+    sources = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())["sources"]
+    for changes, expected in (({"geom_splat_min_sources": 2}, 1), ({"overwrite": True}, 1 + len(sources))):
+        calls.clear()
+        ctx = stereo_module.prepare_stereo(replace_config(on, **changes))
+        assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+        ctx.close()
+        assert len(calls) == expected, changes
 
 
 def _pure_geometric(ws: Path, name: str) -> np.ndarray:
