@@ -465,6 +465,31 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
 
 
+def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path, tiny_checkpoint):
+    """Scene units are arbitrary: the analytic scene at a tenth of its size (depths 0.2-0.6). The
+    sources' seeds splatted into the reference's dropped block keep a confidence, and the depth previews
+    of a reference without a view-selection entry span its own depths."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1, scale=0.1)
+    ref = analytic_scene["names"][0]
+    assert exact[ref].max() < 1
+    on = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=3, previews=True)
+    ctx = stereo_module.prepare_stereo(on)
+    ctx.selection = dataclasses.replace(ctx.selection, references={
+        n: e for n, e in ctx.selection.references.items() if n != ref})
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    added = np.zeros_like(geo, bool)
+    added[40:70, 60:100] = True
+    added &= geo > 0
+    assert added.sum() > 0.5 * 30 * 40 and np.median(np.abs(geo[added] / exact[ref][added] - 1)) < 0.005
+    assert conf[added].min() > 0
+    preview = cv2.imread(str(stereo_outputs.preview_path(load_workspace(ws)[0], ref, "geometric")))
+    colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
+    assert len(colours) > 50  # not one colour clipped at an end of the scale
+
+
 def test_geometric_check_visibility_follows_the_network_sources():
     """The learned visibility of each checked source is the network's map of that source (upsampled to the
     depth map); a checked source the network did not see counts as visible; maps that do not match the
@@ -559,16 +584,23 @@ def _pure_geometric(ws: Path, name: str) -> np.ndarray:
     return np.where(read_depth_map(added) > 0, 0.0, geo).astype(np.float32) if added.is_file() else geo
 
 
-def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
-    """A copy of the analytic scene after a photometric-only run, its photometric maps replaced by the
-    exact ones, but a block of the first view's depth ``factor`` times too far. Returns the workspace,
-    that run's config and the exact depths by name."""
+def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor, scale=1.0):
+    """A copy of the analytic scene (its sparse model and depths ``scale`` times the original's) after a
+    photometric-only run, its photometric maps replaced by the exact ones, but a block of the first view's
+    depth ``factor`` times too far. Returns the workspace, that run's config and the exact depths by name."""
     from scenes import render_view
 
     from colmap_pvs.io.maps import write_depth_map, write_normal_map
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
+    if scale != 1.0:  # the same images of a scene `scale` times the size
+        model = analytic_scene["model"]
+        images = {i: dataclasses.replace(im, cam_from_world=np.hstack([im.cam_from_world[:, :3],
+                                                                       scale * im.cam_from_world[:, 3:]]))
+                  for i, im in model.images.items()}
+        points = dataclasses.replace(model.points, xyz=scale * model.points.xyz)
+        write_sparse_model(dataclasses.replace(model, images=images, points=points), ws / "sparse")
     cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0,
                        min_confidence=0.0, geom_consistency=False)
     run_stereo(cfg)
@@ -577,7 +609,7 @@ def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
     for name in names:
         view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
                            model.image_by_name(name).cam_from_world, 160, 120)
-        exact[name] = view["depth"].astype(np.float32)
+        exact[name] = scale * view["depth"].astype(np.float32)
         depth = exact[name].copy()
         if name == names[0]:
             depth[40:70, 60:100] *= factor
@@ -993,6 +1025,16 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
             assert stereo_outputs.preview_path(load_workspace(ws)[0], name, stage).is_file()
         assert (stereo / "previews" / f"{name}.normal.png").is_file()
         assert list((stereo / "previews").glob(f"{name}.visibility.*.png"))
+    # They are the previews a run with --previews from the start writes: the same depth range (the
+    # view selection's) and colours.
+    ws_at_once = _copy(synthetic_ws, tmp_path / "at_once")
+    run_stereo(replace_config(cfg, workspace_path=ws_at_once, previews=True))
+    for name in first.processed:
+        for stage in ("photometric", "geometric"):
+            late = stereo_outputs.preview_path(load_workspace(ws)[0], name, stage)
+            at_once = stereo_outputs.preview_path(load_workspace(ws_at_once)[0], name, stage)
+            assert at_once.is_file()
+            np.testing.assert_array_equal(cv2.imread(str(late)), cv2.imread(str(at_once)), err_msg=str(late))
 
 
 def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
