@@ -254,3 +254,41 @@ def test_only_pixels_that_land_inside_the_source_map_are_checked():
     inside[2:8, 2:8] = True
     np.testing.assert_array_equal(res.checked[0], inside)
     np.testing.assert_array_equal(res.agree[0], inside)
+
+
+def test_the_default_reprojection_limit_is_one_pixel(exact):
+    """Without ``max_reproj_error`` a pixel agrees when its round trip lands within 1 px (COLMAP's
+    ``filter_geom_consistency_max_cost``); depths 2 % too far give round trips of 0-3 px."""
+    ref, srcs = exact[0], exact[1:]
+    far = ref.depth * np.float32(1.02)
+    res = check_consistency(far, None, ref.K, ref.cam_from_world, srcs, max_depth_error=1.0)
+    err = res.reproj_error[res.checked]
+    assert ((err > 1) & (err <= 2)).sum() > 100 and (err <= 1).sum() > 100
+    np.testing.assert_array_equal(res.agree, res.checked & (res.reproj_error <= 1.0))
+
+
+def test_cameras_as_4x4_matrices_give_the_same_result(exact):
+    """``cam_from_world`` of the reference and of each source may be ``[3, 4]`` or ``[4, 4]``."""
+    ref, srcs = exact[0], exact[1:]
+
+    def square(T):
+        return np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+
+    res = _check(ref, srcs)
+    squared = [SourceMaps(s.depth, s.normals, s.K, square(s.cam_from_world)) for s in srcs]
+    res4 = check_consistency(ref.depth, ref.normals, ref.K, square(ref.cam_from_world), squared)
+    assert res.agree.sum() > 0
+    np.testing.assert_array_equal(res4.agree, res.agree)
+    np.testing.assert_array_equal(res4.reproj_error, res.reproj_error)
+
+
+def test_the_normal_test_skips_pixels_without_a_normal_on_either_side(exact):
+    """A pixel whose source normal or reference normal is 0 (unknown) is judged by its depth alone."""
+    ref, srcs = exact[0], exact[1:]
+    no_source_normals = [SourceMaps(s.depth, np.zeros_like(s.normals), s.K, s.cam_from_world) for s in srcs]
+    plain = _check(ref, srcs, max_normal_error=180.0)
+    res = _check(ref, no_source_normals, max_normal_error=30.0)
+    assert plain.agree.sum() > 0
+    np.testing.assert_array_equal(res.agree, plain.agree)
+    no_ref_normals = SourceMaps(ref.depth, np.zeros_like(ref.normals), ref.K, ref.cam_from_world)
+    np.testing.assert_array_equal(_check(no_ref_normals, srcs, max_normal_error=30.0).agree, plain.agree)
