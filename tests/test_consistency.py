@@ -340,3 +340,15 @@ def test_the_normal_test_of_a_normal_along_the_camera_axis():
                              max_reproj_error=2.0).agree.all()
     assert not check_consistency(depth, facing, K, np.eye(4)[:3], [flipped], max_normal_error=30.0,
                                  max_reproj_error=2.0).agree.any()
+
+
+def test_a_source_map_one_pixel_wide():
+    """The reference's first column lands in a one-pixel-wide source map (the same camera) and agrees; the
+    other columns land outside it and are not checked."""
+    K = np.array([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    src = SourceMaps(np.full((8, 1), 2.0, np.float32), None, K, np.eye(4)[:3])
+    res = check_consistency(np.full((8, 8), 2.0, np.float32), None, K, np.eye(4)[:3], [src])
+    first = np.zeros((8, 8), bool)
+    first[:, 0] = True
+    np.testing.assert_array_equal(res.checked[0], first)
+    np.testing.assert_array_equal(res.agree[0], first)
