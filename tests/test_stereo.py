@@ -1200,6 +1200,23 @@ def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_chec
     assert run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5)).processed
 
 
+def test_the_geometric_too_close_warning_lists_a_source_that_sees_nothing_at_angle_0(caplog):
+    """Each source's median triangulation angle over the reference's pixels it checks; 0 for a source
+    that checks none of them."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    ctx = SimpleNamespace(config=SimpleNamespace(geometric=SimpleNamespace(min_triangulation_angle=5.0)))
+    ref = SourceMaps(np.ones((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    checked = np.zeros((2, 4, 4), bool)
+    checked[0] = True
+    res = SimpleNamespace(checked=checked, angle=np.full((2, 4, 4), 2.0, np.float32))
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], ref, res)
+    assert "(median angles: a.png 2, b.png 0)" in caplog.text
+
+
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
                                                                              tiny_checkpoint, caplog):
     """Sources all below geom_min_triangulation_angle give an empty geometric map: a WARNING names the
