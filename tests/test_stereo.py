@@ -575,6 +575,13 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
         assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
         ctx.close()
         assert len(calls) == expected, changes
+    # Seeds held in memory under another fingerprint (other settings) are never reused.
+    ctx = stereo_module.prepare_stereo(on)
+    setup = stereo_geometric._check_setup(ctx, sources[0])
+    stale = np.full((120, 160), 7.0, np.float32)
+    ctx.seed_cache[sources[0]] = ("~" * 64, stereo_geometric.Checked(stale))  # "~" sorts after hex digits
+    assert not np.array_equal(stereo_geometric._source_seeds(ctx, sources[0], setup), stale)
+    ctx.close()
 
 
 def _pure_geometric(ws: Path, name: str) -> np.ndarray:
