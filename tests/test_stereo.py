@@ -534,6 +534,7 @@ def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(an
     assert np.median(np.abs(geo[kept] / truth[kept] - 1)) < 0.01  # 2 % off, averaged with exact sources
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
+    assert prov["reestimated"] is False  # the photometric maps checked, not re-estimated
     own, _ = geometric(geom_average_depth=False)
     np.testing.assert_array_equal(own[own > 0], photo[own > 0])
     threshold = float(np.median(conf[geo > 0]))
@@ -575,8 +576,14 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
         assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
         ctx.close()
         assert len(calls) == expected, changes
-    # Seeds held in memory under another fingerprint (other settings) are never reused.
+    # A current pass whose seed map is missing is recomputed, its seed map written again.
     ctx = stereo_module.prepare_stereo(on)
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    (ws / "stereo" / "seed_maps" / f"{ref}.bin").unlink()
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.flush()
+    assert (ws / "stereo" / "seed_maps" / f"{ref}.bin").is_file()
+    # Seeds held in memory under another fingerprint (other settings) are never reused.
     setup = stereo_geometric._check_setup(ctx, sources[0])
     stale = np.full((120, 160), 7.0, np.float32)
     ctx.seed_cache[sources[0]] = ("~" * 64, stereo_geometric.Checked(stale))  # "~" sorts after hex digits
