@@ -720,6 +720,12 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     res = run_stereo(replace_config(re_cfg, geom_reestimate=False))
     assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
     assert (_pure_geometric(ws, ref)[block] > 0).mean() < 0.02
+    # Pixels agreed on by exactly geom_min_consistent sources are hints too (here: all of its sources).
+    calls.clear()
+    ctx = stereo_module.prepare_stereo(replace_config(re_cfg, geom_min_consistent=len(prov["sources"])))
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    assert (calls[0][1][outside] > 0).mean() > 0.2
 
 
 def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes_it_back(
