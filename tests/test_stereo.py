@@ -562,13 +562,14 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     real = stereo_geometric.check_consistency
 
     def counted(*args, **kwargs):
-        calls.append(1)
+        calls.append(args[5] if len(args) > 5 else kwargs.get("visibility"))  # the learned visibility
         return real(*args, **kwargs)
 
     monkeypatch.setattr(stereo_geometric, "check_consistency", counted)
     on = replace_config(cfg, geom_consistency=True, geom_fill=False, geom_splat_min_sources=3)
     res = run_stereo(on)
     assert sorted(res.geometric_processed) == sorted(names) and len(calls) == len(names)
+    assert all(vis is not None and vis.any() for vis in calls)  # each check weighs the network's visibility
     sources = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())["sources"]
     for changes, expected in (({"geom_splat_min_sources": 2}, 1), ({"overwrite": True}, 1 + len(sources))):
         calls.clear()
