@@ -491,6 +491,24 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     assert len(colours) > 50  # not one colour clipped at an end of the scale
 
 
+def test_geometric_check_refuses_a_normal_map_of_another_size(analytic_scene, tmp_path, tiny_checkpoint):
+    """A photometric normal map whose size differs from its depth map's: an error naming both sizes."""
+    from colmap_pvs.errors import MapFormatError
+    from colmap_pvs.io.maps import write_normal_map
+
+    ws, cfg, _ = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.0)
+    ref = analytic_scene["names"][0]
+    small = np.zeros((60, 80, 3), np.float32)
+    small[..., 2] = -1.0
+    write_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.photometric.bin", small)
+    ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True))
+    try:
+        with pytest.raises(MapFormatError, match=r"is \(60, 80\) but its depth map is \(120, 160\)"):
+            stereo_geometric.load_maps(ctx, ref)
+    finally:
+        ctx.close()
+
+
 def test_geometric_check_visibility_follows_the_network_sources():
     """The learned visibility of each checked source is the network's map of that source (upsampled to the
     depth map); a checked source the network did not see counts as visible; maps that do not match the
