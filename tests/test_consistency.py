@@ -144,6 +144,8 @@ def test_sources_checked_in_threads_give_the_same_result(exact):
     kw = dict(max_normal_error=30.0, max_depth_error=0.02)
     one = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs, **kw)
     many = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs, workers=3, **kw)
+    none = check_consistency(bad, ref.normals, ref.K, ref.cam_from_world, srcs, workers=0, **kw)  # no threads
+    np.testing.assert_array_equal(none.agree, one.agree)
     assert one.agree.any() and not one.agree.all()
     for field in ("agree", "checked", "reproj_error", "depth_error", "reprojected_depth", "parallax"):
         np.testing.assert_array_equal(getattr(many, field), getattr(one, field), err_msg=field)
@@ -240,6 +242,8 @@ def test_a_reference_map_that_is_not_2d_is_refused(exact):
     ref = exact[0]
     with pytest.raises(ShapeError, match=r"\(1, 120, 160\)"):
         check_consistency(ref.depth[None], None, ref.K, ref.cam_from_world, exact[1:])
+    with pytest.raises(ShapeError, match=r"\(160,\)"):
+        check_consistency(ref.depth[0], None, ref.K, ref.cam_from_world, exact[1:])
 
 
 def test_only_pixels_that_land_inside_the_source_map_are_checked():
@@ -254,3 +258,97 @@ def test_only_pixels_that_land_inside_the_source_map_are_checked():
     inside[2:8, 2:8] = True
     np.testing.assert_array_equal(res.checked[0], inside)
     np.testing.assert_array_equal(res.agree[0], inside)
+
+
+def test_the_default_reprojection_limit_is_one_pixel(exact):
+    """Without ``max_reproj_error`` a pixel agrees when its round trip lands within 1 px (COLMAP's
+    ``filter_geom_consistency_max_cost``); depths 2 % too far give round trips of 0-3 px."""
+    ref, srcs = exact[0], exact[1:]
+    far = ref.depth * np.float32(1.02)
+    res = check_consistency(far, None, ref.K, ref.cam_from_world, srcs, max_depth_error=1.0)
+    err = res.reproj_error[res.checked]
+    assert ((err > 1) & (err <= 2)).sum() > 100 and (err <= 1).sum() > 100
+    np.testing.assert_array_equal(res.agree, res.checked & (res.reproj_error <= 1.0))
+
+
+def test_cameras_as_4x4_matrices_give_the_same_result(exact):
+    """``cam_from_world`` of the reference and of each source may be ``[3, 4]`` or ``[4, 4]``."""
+    ref, srcs = exact[0], exact[1:]
+
+    def square(T):
+        return np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+
+    res = _check(ref, srcs)
+    squared = [SourceMaps(s.depth, s.normals, s.K, square(s.cam_from_world)) for s in srcs]
+    res4 = check_consistency(ref.depth, ref.normals, ref.K, square(ref.cam_from_world), squared)
+    assert res.agree.sum() > 0
+    np.testing.assert_array_equal(res4.agree, res.agree)
+    np.testing.assert_array_equal(res4.reproj_error, res.reproj_error)
+
+
+def test_the_normal_test_skips_pixels_without_a_normal_on_either_side(exact):
+    """A pixel whose source normal or reference normal is 0 (unknown) is judged by its depth alone."""
+    ref, srcs = exact[0], exact[1:]
+    no_source_normals = [SourceMaps(s.depth, np.zeros_like(s.normals), s.K, s.cam_from_world) for s in srcs]
+    plain = _check(ref, srcs, max_normal_error=180.0)
+    res = _check(ref, no_source_normals, max_normal_error=30.0)
+    assert plain.agree.sum() > 0
+    np.testing.assert_array_equal(res.agree, plain.agree)
+    no_ref_normals = SourceMaps(ref.depth, np.zeros_like(ref.normals), ref.K, ref.cam_from_world)
+    np.testing.assert_array_equal(_check(no_ref_normals, srcs, max_normal_error=30.0).agree, plain.agree)
+
+
+def _plane_from_behind(depth):
+    """A fronto-parallel plane at depth 2 in an 8 x 8 reference map ``depth`` (its holes 0), and a source
+    with the same intrinsics 1 unit behind the reference, looking the same way (its map: 3 everywhere;
+    nearest-pixel round trips of up to 1.07 px)."""
+    K = np.array([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    behind = np.hstack([np.eye(3), [[0.0], [0.0], [1.0]]])
+    return K, SourceMaps(np.full((8, 8), 3.0, np.float32), None, K, behind)
+
+
+def test_holes_in_the_reference_map_are_not_checked():
+    """Reference pixels without depth (0) are no point: not checked, whatever lands where the source sees
+    the reference's centre."""
+    depth = np.full((8, 8), 2.0, np.float32)
+    depth[2:6, 2:6] = 0.0
+    K, src = _plane_from_behind(depth)
+    res = check_consistency(depth, None, K, np.eye(4)[:3], [src], max_reproj_error=2.0)
+    np.testing.assert_array_equal(res.checked[0], depth > 0)
+    np.testing.assert_array_equal(res.agree[0], depth > 0)
+
+
+def test_points_behind_the_source_are_not_checked():
+    """A point behind the source camera projects to a mirrored pixel inside its map: never checked."""
+    depth, K, ref_T, src_T = _facing_source(1.0)
+    behind = np.full_like(depth, 5.0)  # the source is at depth 4, looking back
+    res = check_consistency(behind, None, K, ref_T, [SourceMaps(depth, None, K, src_T)])
+    assert not res.checked.any() and not res.agree.any()
+    assert check_consistency(depth, None, K, ref_T, [SourceMaps(depth, None, K, src_T)]).checked.any()
+
+
+def test_the_normal_test_of_a_normal_along_the_camera_axis():
+    """Normals facing the reference camera straight on ((0, 0, -1): the sum of their absolute values is 1)
+    are compared too: flipped source normals are rejected."""
+    depth = np.full((8, 8), 2.0, np.float32)
+    K, src = _plane_from_behind(depth)
+    facing = np.zeros((8, 8, 3), np.float32)
+    facing[..., 2] = -1.0
+    same = SourceMaps(src.depth, facing, K, src.cam_from_world)
+    flipped = SourceMaps(src.depth, -facing, K, src.cam_from_world)
+    assert check_consistency(depth, facing, K, np.eye(4)[:3], [same], max_normal_error=30.0,
+                             max_reproj_error=2.0).agree.all()
+    assert not check_consistency(depth, facing, K, np.eye(4)[:3], [flipped], max_normal_error=30.0,
+                                 max_reproj_error=2.0).agree.any()
+
+
+def test_a_source_map_one_pixel_wide():
+    """The reference's first column lands in a one-pixel-wide source map (the same camera) and agrees; the
+    other columns land outside it and are not checked."""
+    K = np.array([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    src = SourceMaps(np.full((8, 1), 2.0, np.float32), None, K, np.eye(4)[:3])
+    res = check_consistency(np.full((8, 8), 2.0, np.float32), None, K, np.eye(4)[:3], [src])
+    first = np.zeros((8, 8), bool)
+    first[:, 0] = True
+    np.testing.assert_array_equal(res.checked[0], first)
+    np.testing.assert_array_equal(res.agree[0], first)

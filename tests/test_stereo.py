@@ -441,7 +441,8 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["settings"]["geom_splat_min_sources"] == 3
     assert set(prov["settings"]["splat_seeds"]) <= set(names)
-    assert prov["splatted_fraction"] > 0
+    newly = ((geo > 0) & ~(dropped > 0)).mean()  # splatted, less those the normal fit dropped
+    assert newly > 0 and newly <= prov["splatted_fraction"] <= 1.25 * newly  # a share of the pixels
     # The sources' seeds were made on demand, and their fingerprints are part of the reference's; their
     # own geometric pass makes the same ones.
     on_demand = {n: read_array(seeds_dir / f"{n}.bin") for n in prov["settings"]["splat_seeds"]}
@@ -463,6 +464,49 @@ def test_geometric_pass_keeps_dropped_pixels_that_its_sources_seeds_confirm(anal
     assert sorted(res.geometric_processed) == sorted(names) and res.processed == []
     assert stamps == {n: json.loads((seeds_dir / f"{n}.json").read_text())["fingerprint"] for n in names}
     np.testing.assert_array_equal(read_depth_map(maps / f"{ref}.geometric.bin"), dropped)
+
+
+def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path, tiny_checkpoint):
+    """Scene units are arbitrary: the analytic scene at a tenth of its size (depths 0.2-0.6). The
+    sources' seeds splatted into the reference's dropped block keep a confidence, and the depth previews
+    of a reference without a view-selection entry span its own depths."""
+    ws, cfg, exact = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1, scale=0.1)
+    ref = analytic_scene["names"][0]
+    assert exact[ref].max() < 1
+    on = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=3, previews=True)
+    ctx = stereo_module.prepare_stereo(on)
+    ctx.selection = dataclasses.replace(ctx.selection, references={
+        n: e for n, e in ctx.selection.references.items() if n != ref})
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin")
+    added = np.zeros_like(geo, bool)
+    added[40:70, 60:100] = True
+    added &= geo > 0
+    assert added.sum() > 0.5 * 30 * 40 and np.median(np.abs(geo[added] / exact[ref][added] - 1)) < 0.005
+    assert conf[added].min() > 0
+    preview = cv2.imread(str(stereo_outputs.preview_path(load_workspace(ws)[0], ref, "geometric")))
+    colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
+    assert len(colours) > 50  # not one colour clipped at an end of the scale
+
+
+def test_geometric_check_refuses_a_normal_map_of_another_size(analytic_scene, tmp_path, tiny_checkpoint):
+    """A photometric normal map whose size differs from its depth map's: an error naming both sizes."""
+    from colmap_pvs.errors import MapFormatError
+    from colmap_pvs.io.maps import write_normal_map
+
+    ws, cfg, _ = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.0)
+    ref = analytic_scene["names"][0]
+    small = np.zeros((60, 80, 3), np.float32)
+    small[..., 2] = -1.0
+    write_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.photometric.bin", small)
+    ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True))
+    try:
+        with pytest.raises(MapFormatError, match=r"is \(60, 80\) but its depth map is \(120, 160\)"):
+            stereo_geometric.load_maps(ctx, ref)
+    finally:
+        ctx.close()
 
 
 def test_geometric_check_visibility_follows_the_network_sources():
@@ -508,6 +552,7 @@ def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(an
     assert np.median(np.abs(geo[kept] / truth[kept] - 1)) < 0.01  # 2 % off, averaged with exact sources
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
+    assert prov["reestimated"] is False  # the photometric maps checked, not re-estimated
     own, _ = geometric(geom_average_depth=False)
     np.testing.assert_array_equal(own[own > 0], photo[own > 0])
     threshold = float(np.median(conf[geo > 0]))
@@ -535,13 +580,14 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     real = stereo_geometric.check_consistency
 
     def counted(*args, **kwargs):
-        calls.append(1)
+        calls.append(args[5] if len(args) > 5 else kwargs.get("visibility"))  # the learned visibility
         return real(*args, **kwargs)
 
     monkeypatch.setattr(stereo_geometric, "check_consistency", counted)
     on = replace_config(cfg, geom_consistency=True, geom_fill=False, geom_splat_min_sources=3)
     res = run_stereo(on)
     assert sorted(res.geometric_processed) == sorted(names) and len(calls) == len(names)
+    assert all(vis is not None and vis.any() for vis in calls)  # each check weighs the network's visibility
     sources = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())["sources"]
     for changes, expected in (({"geom_splat_min_sources": 2}, 1), ({"overwrite": True}, 1 + len(sources))):
         calls.clear()
@@ -549,6 +595,19 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
         assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
         ctx.close()
         assert len(calls) == expected, changes
+    # A current pass whose seed map is missing is recomputed, its seed map written again.
+    ctx = stereo_module.prepare_stereo(on)
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    (ws / "stereo" / "seed_maps" / f"{ref}.bin").unlink()
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.flush()
+    assert (ws / "stereo" / "seed_maps" / f"{ref}.bin").is_file()
+    # Seeds held in memory under another fingerprint (other settings) are never reused.
+    setup = stereo_geometric._check_setup(ctx, sources[0])
+    stale = np.full((120, 160), 7.0, np.float32)
+    ctx.seed_cache[sources[0]] = ("~" * 64, stereo_geometric.Checked(stale))  # "~" sorts after hex digits
+    assert not np.array_equal(stereo_geometric._source_seeds(ctx, sources[0], setup), stale)
+    ctx.close()
 
 
 def _pure_geometric(ws: Path, name: str) -> np.ndarray:
@@ -559,16 +618,23 @@ def _pure_geometric(ws: Path, name: str) -> np.ndarray:
     return np.where(read_depth_map(added) > 0, 0.0, geo).astype(np.float32) if added.is_file() else geo
 
 
-def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
-    """A copy of the analytic scene after a photometric-only run, its photometric maps replaced by the
-    exact ones, but a block of the first view's depth ``factor`` times too far. Returns the workspace,
-    that run's config and the exact depths by name."""
+def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor, scale=1.0):
+    """A copy of the analytic scene (its sparse model and depths ``scale`` times the original's) after a
+    photometric-only run, its photometric maps replaced by the exact ones, but a block of the first view's
+    depth ``factor`` times too far. Returns the workspace, that run's config and the exact depths by name."""
     from scenes import render_view
 
     from colmap_pvs.io.maps import write_depth_map, write_normal_map
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
+    if scale != 1.0:  # the same images of a scene `scale` times the size
+        model = analytic_scene["model"]
+        images = {i: dataclasses.replace(im, cam_from_world=np.hstack([im.cam_from_world[:, :3],
+                                                                       scale * im.cam_from_world[:, 3:]]))
+                  for i, im in model.images.items()}
+        points = dataclasses.replace(model.points, xyz=scale * model.points.xyz)
+        write_sparse_model(dataclasses.replace(model, images=images, points=points), ws / "sparse")
     cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=4, max_image_size=0,
                        min_confidence=0.0, geom_consistency=False)
     run_stereo(cfg)
@@ -577,7 +643,7 @@ def _exact_photometric_maps(analytic_scene, tmp_path, checkpoint, factor):
     for name in names:
         view = render_view(analytic_scene["scene"], analytic_scene["map_K"][name],
                            model.image_by_name(name).cam_from_world, 160, 120)
-        exact[name] = view["depth"].astype(np.float32)
+        exact[name] = scale * view["depth"].astype(np.float32)
         depth = exact[name].copy()
         if name == names[0]:
             depth[40:70, 60:100] *= factor
@@ -673,6 +739,12 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     res = run_stereo(replace_config(re_cfg, geom_reestimate=False))
     assert res.processed == [] and sorted(res.geometric_processed) == sorted(names)
     assert (_pure_geometric(ws, ref)[block] > 0).mean() < 0.02
+    # Pixels agreed on by exactly geom_min_consistent sources are hints too (here: all of its sources).
+    calls.clear()
+    ctx = stereo_module.prepare_stereo(replace_config(re_cfg, geom_min_consistent=len(prov["sources"])))
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    assert (calls[0][1][outside] > 0).mean() > 0.2
 
 
 def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes_it_back(
@@ -993,6 +1065,16 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
             assert stereo_outputs.preview_path(load_workspace(ws)[0], name, stage).is_file()
         assert (stereo / "previews" / f"{name}.normal.png").is_file()
         assert list((stereo / "previews").glob(f"{name}.visibility.*.png"))
+    # They are the previews a run with --previews from the start writes: the same depth range (the
+    # view selection's) and colours.
+    ws_at_once = _copy(synthetic_ws, tmp_path / "at_once")
+    run_stereo(replace_config(cfg, workspace_path=ws_at_once, previews=True))
+    for name in first.processed:
+        for stage in ("photometric", "geometric"):
+            late = stereo_outputs.preview_path(load_workspace(ws)[0], name, stage)
+            at_once = stereo_outputs.preview_path(load_workspace(ws_at_once)[0], name, stage)
+            assert at_once.is_file()
+            np.testing.assert_array_equal(cv2.imread(str(late)), cv2.imread(str(at_once)), err_msg=str(late))
 
 
 def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
@@ -1155,6 +1237,23 @@ def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_chec
     assert after.keys() == before.keys()  # no temporary file left
     assert {p for p in after if after[p] != before[p]} == {run_record}  # every map and provenance kept
     assert run_stereo(stereo_config(**flags, overwrite=True, min_confidence=0.5)).processed
+
+
+def test_the_geometric_too_close_warning_lists_a_source_that_sees_nothing_at_angle_0(caplog):
+    """Each source's median triangulation angle over the reference's pixels it checks; 0 for a source
+    that checks none of them."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    ctx = SimpleNamespace(config=SimpleNamespace(geometric=SimpleNamespace(min_triangulation_angle=5.0)))
+    ref = SourceMaps(np.ones((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    checked = np.zeros((2, 4, 4), bool)
+    checked[0] = True
+    res = SimpleNamespace(checked=checked, angle=np.full((2, 4, 4), 2.0, np.float32))
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], ref, res)
+    assert "(median angles: a.png 2, b.png 0)" in caplog.text
 
 
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
