@@ -396,28 +396,11 @@ def _readable_photos(folder: Path, names: list[str]) -> tuple[list[str], dict[st
 # --------------------------------------------------------------------------- SfM
 
 
-def _extract(config: ReconstructConfig, database: Path, image_dir: Path, names: list[str]) -> None:
-    from .io.features import extract_features
-
-    extract_features(
-        database,
-        image_dir,
-        names,
-        camera_model=config.camera_model,
-        single_camera=config.single_camera,
-        num_threads=config.num_threads,
-        max_image_size=config.sift_max_image_size,
-        max_num_features=config.max_num_features,
-        peak_threshold=config.sift_peak_threshold,
-        progress=True,
-    )
-
-
 def _run_sfm(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, stop_after: str | None
 ) -> Path | None:
     """Features, matching and mapping; ``None`` when ``stop_after`` stopped it before a model exists."""
-    from .io.features import clear_matches, match_features, resolve_matcher
+    from .io.features import clear_matches, extract_features, match_features, resolve_matcher
     from .io.sfm import incremental_mapping
 
     image_dir = Path(config.image_path)
@@ -437,7 +420,11 @@ def _run_sfm(
         staged = root / "database.db.new"  # replaces the old database once complete
         remove_database(staged)
         try:
-            _extract(config, staged, image_dir, names)
+            extract_features(staged, image_dir, names, camera_model=config.camera_model,
+                             single_camera=config.single_camera, num_threads=config.num_threads,
+                             max_image_size=config.sift_max_image_size,
+                             max_num_features=config.max_num_features,
+                             peak_threshold=config.sift_peak_threshold, progress=True)
         except BaseException:
             remove_database(staged)
             raise

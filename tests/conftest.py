@@ -138,6 +138,13 @@ class OwnProcessFailed(Exception):
     """A test :class:`OwnProcess` ran failed (the message holds the child's report)."""
 
 
+def disk_full_after_writing_half(path, *args, **kwargs):
+    """A stand-in for a writer of ``path`` (its first argument) on a full disk: it leaves half a file there
+    and raises ``ENOSPC``."""
+    Path(path).write_bytes(b"half")
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
 def load_tool(name: str):
     """The script ``tools/NAME.py`` as a module (``tools/`` is not a package), registered as ``NAME``."""
     import importlib.util

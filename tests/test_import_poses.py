@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import disk_full_after_writing_half
 
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.io.import_poses import (
@@ -369,8 +370,6 @@ def test_real_subset_subpixel(shared_data_dir, tmp_path, folder, marker, subset,
 def test_a_failed_overwrite_keeps_the_old_model_record_and_database(tmp_path, monkeypatch):
     """`--overwrite` deleted the model, its record and the database before making new ones: a full disk
     during the new feature extraction left nothing. Now the new database is built beside the old one."""
-    import errno
-    import os
 
     import colmap_pvs.io.import_poses as module
 
@@ -382,11 +381,7 @@ def test_a_failed_overwrite_keeps_the_old_model_record_and_database(tmp_path, mo
     before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert {Path("database.db"), Path("import_poses.json"), Path("sparse/points3D.bin")} <= set(before)
 
-    def full(database, *args, **kwargs):
-        Path(database).write_bytes(b"half")
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(database))
-
-    monkeypatch.setattr(module, "extract_features", full)
+    monkeypatch.setattr(module, "extract_features", disk_full_after_writing_half)
     with pytest.raises(OSError, match="No space left"):
         import_poses(ImportPosesConfig(**config, sift_peak_threshold=0.008, overwrite=True))
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import make_tiny_checkpoint
+from conftest import disk_full_after_writing_half, make_tiny_checkpoint
 from scenes import reconstruct_config, stereo_config
 
 from colmap_pvs.cli.main import main
@@ -247,15 +247,22 @@ def test_reconstruct_result_paths_are_set_before_the_stages(tmp_path, analytic_s
     assert result.stopped_after == "mapping"
 
 
-def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_recomputing(analytic_scene,
-                                                                                        tmp_path):
-    """``--previews`` is output-only: a finished run without previews, rerun with them, writes the
-    previews of the finished maps and recomputes no stage (maps, cloud and mesh stay as they were)."""
+def _tiny_run(analytic_scene, tmp_path) -> tuple[Path, Path, Path, dict]:
+    """The analytic workspace, a tiny checkpoint, ``tmp_path/out`` and the flags of a small whole run on
+    them (from its sparse model)."""
     ws = analytic_scene["root"]
     ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
     out = tmp_path / "out"
     flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
                  num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    return ws, ckpt, out, flags
+
+
+def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_recomputing(analytic_scene,
+                                                                                        tmp_path):
+    """``--previews`` is output-only: a finished run without previews, rerun with them, writes the
+    previews of the finished maps and recomputes no stage (maps, cloud and mesh stay as they were)."""
+    ws, ckpt, out, flags = _tiny_run(analytic_scene, tmp_path)
     reconstruct(reconstruct_config(**flags, previews=False))
     previews = out / "dense" / "stereo" / "previews"
     assert not previews.exists()
@@ -272,11 +279,7 @@ def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_rec
 def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checked(analytic_scene, tmp_path):
     """Flags that change no map (threads, device, backend, the Ray settings, previews) resume a finished
     run; a marker of an older colmap-pvs (flat stereo settings) is still compared with the new ones."""
-    ws = analytic_scene["root"]
-    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
-    out = tmp_path / "out"
-    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
-                 num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    ws, ckpt, out, flags = _tiny_run(analytic_scene, tmp_path)
     reconstruct(reconstruct_config(**flags))
     rerun = reconstruct(reconstruct_config(**flags, threads=1, device="cpu", ray_workers=3, previews=False))
     assert {"undistort", "stereo", "fusion", "mesh"} <= set(rerun.resumed)
@@ -320,11 +323,7 @@ def test_fusion_and_mesh_follow_the_maps_they_read(analytic_scene, tmp_path, cap
     fused and meshed again, and the log says why; with nothing changed both resume."""
     from colmap_pvs.stereo import run_stereo
 
-    ws = analytic_scene["root"]
-    ckpt = make_tiny_checkpoint(tmp_path / "tiny.pt")
-    out = tmp_path / "out"
-    flags = dict(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse", checkpoint=ckpt,
-                 num_views=3, mesh_depth=5, num_threads=1, max_image_size=64)
+    ws, ckpt, out, flags = _tiny_run(analytic_scene, tmp_path)
     reconstruct(reconstruct_config(**flags))
     fused = out / "dense" / "fused.ply"
     assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
@@ -455,8 +454,6 @@ def test_stereo_follows_the_dense_workspaces_images(analytic_scene, tmp_path, ca
 def test_a_failed_feature_extraction_of_an_overwrite_keeps_the_old_database(analytic_scene, tmp_path,
                                                                            monkeypatch):
     """The database was deleted before the new extraction: a full disk left none."""
-    import errno
-    import os
 
     import colmap_pvs.io.features as features
 
@@ -466,11 +463,7 @@ def test_a_failed_feature_extraction_of_an_overwrite_keeps_the_old_database(anal
     db = tmp_path / "out" / "database.db"
     before = db.read_bytes()
 
-    def full(database, *args, **kwargs):
-        Path(database).write_bytes(b"half")
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(database))
-
-    monkeypatch.setattr(features, "extract_features", full)
+    monkeypatch.setattr(features, "extract_features", disk_full_after_writing_half)
     with pytest.raises(OSError, match="No space left"):
         reconstruct(reconstruct_config(**flags, max_num_features=500, overwrite=True))
     assert db.read_bytes() == before
