@@ -30,6 +30,8 @@ from colmap_pvs.stereo import network as stereo_network
 from colmap_pvs.stereo import outputs as stereo_outputs
 from colmap_pvs.stereo import photometric as stereo_photometric
 from colmap_pvs.stereo import run_stereo
+from colmap_pvs.stereo.reference import PassMaps, PassRecord, Reference, preview_path
+from colmap_pvs.stereo.timing import Timer
 from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
 
 
@@ -486,7 +488,7 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     added &= geo > 0
     assert added.sum() > 0.5 * 30 * 40 and np.median(np.abs(geo[added] / exact[ref][added] - 1)) < 0.005
     assert conf[added].min() > 0
-    preview = cv2.imread(str(stereo_outputs.preview_path(load_workspace(ws)[0], ref, "geometric")))
+    preview = cv2.imread(str(preview_path(load_workspace(ws)[0], ref, "geometric")))
     colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
     assert len(colours) > 50  # not one colour clipped at an end of the scale
 
@@ -990,8 +992,10 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     conf = np.full((6, 8), 0.5, np.float32)
 
     def write(settings):
-        stereo_outputs.write_pass(ws, "a.png", stage, depth, normals, conf, settings, {}, False,
-                                  (1.0, 3.0), {})
+        maps = PassMaps(depth, conf, normals)
+        ref = Reference.of(ws, "a.png", depth_range=(1.0, 3.0))
+        ref = ref.with_pass(stage, maps, PassRecord(settings, {}))
+        stereo_outputs.write_pass(ref, stage, previews=False, timer=Timer())
 
     old, new = {"v": 1}, {"v": 2}
     write(old)
@@ -1062,7 +1066,7 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
     assert {p: p.read_bytes() for p in before} == before
     for name in first.processed:
         for stage in ("photometric", "geometric", "filled"):
-            assert stereo_outputs.preview_path(load_workspace(ws)[0], name, stage).is_file()
+            assert preview_path(load_workspace(ws)[0], name, stage).is_file()
         assert (stereo / "previews" / f"{name}.normal.png").is_file()
         assert list((stereo / "previews").glob(f"{name}.visibility.*.png"))
     # They are the previews a run with --previews from the start writes: the same depth range (the
@@ -1071,8 +1075,8 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
     run_stereo(replace_config(cfg, workspace_path=ws_at_once, previews=True))
     for name in first.processed:
         for stage in ("photometric", "geometric"):
-            late = stereo_outputs.preview_path(load_workspace(ws)[0], name, stage)
-            at_once = stereo_outputs.preview_path(load_workspace(ws_at_once)[0], name, stage)
+            late = preview_path(load_workspace(ws)[0], name, stage)
+            at_once = preview_path(load_workspace(ws_at_once)[0], name, stage)
             assert at_once.is_file()
             np.testing.assert_array_equal(cv2.imread(str(late)), cv2.imread(str(at_once)), err_msg=str(late))
 

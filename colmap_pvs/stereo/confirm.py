@@ -15,7 +15,6 @@ changes the completions takes them out of the geometric maps again before it add
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -40,6 +39,7 @@ from .outputs import (
     write_geometric,
     write_json,
 )
+from .timing import Timer
 
 #: Other references whose completions must agree with a completed pixel (``fuse``'s default).
 CONFIRM_MIN_VIEWS = 2
@@ -60,7 +60,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     """Add to ``name``'s geometric maps the completed pixels that the completions of its best views by
     score among this run's references (up to ``geom_num_sources``) confirm."""
     cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
+    timer = Timer()
     geo, filled = read_provenance(ws, name, "geometric"), read_provenance(ws, name, "filled")
     if geo is None or filled is None or not ws.depth_map_path(name, "filled").is_file():
         remove_confirmed(ws, name)
@@ -89,7 +89,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if (same and confirm_map_path(ws, name).is_file()
             and record.get("geometric_depth_sha256") == geometric_sha256):  # not rewritten since
         if not cfg.overwrite:
-            return RefOutcome(name, "confirm", "done", seconds=time.perf_counter() - start)
+            return RefOutcome(name, "confirm", "done", seconds=timer.elapsed())
         why = "--overwrite"
     elif same:
         why = ("its geometric maps were rewritten" if confirm_map_path(ws, name).is_file()
@@ -98,39 +98,36 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         why = "its geometric maps are new"
     else:
         why = change_reason(record, settings, "confirm")
-    t0 = time.perf_counter()
-    depth, normals, conf = pure_geometric(ws, name, geometric_sha256)
-    ref, fconf = _supported_completion(ctx, name)
-    supported = ref.depth
-    srcs = [_supported_completion(ctx, s)[0] for s in sources]
-    timings = {"load": time.perf_counter() - t0}
-    t0 = time.perf_counter()
-    candidates = np.where(depth > 0, 0.0, supported).astype(np.float32)
-    added = np.zeros(depth.shape, bool)
-    if srcs and (candidates > 0).any():
-        res = check_consistency(candidates, None, ref.K, ref.cam_from_world, srcs,
-                                max_reproj_error=CONFIRM_MAX_REPROJ_ERROR,
-                                max_depth_error=CONFIRM_MAX_DEPTH_ERROR, workers=2)
-        added = (candidates > 0) & (res.agree.sum(0) >= CONFIRM_MIN_VIEWS)
-    fitted = fit_normals(supported, ref.K)
-    added &= np.any(fitted != 0, axis=-1)
-    timings["check"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    # Crash-safe order: first a record that covers the old and the new pixels (on these geometric
-    # maps), then the maps, then the exact record.
-    old_path = confirm_map_path(ws, name)
-    applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
-        "geometric_depth_sha256") in (None, geometric_sha256)
-    old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
-    old = old if old.shape == depth.shape else np.zeros_like(depth)
-    old_path.parent.mkdir(parents=True, exist_ok=True)
-    write_depth_map(old_path, np.where(added, supported, old).astype(np.float32))
-    write_json(confirm_provenance_path(ws, name), {"fingerprint": None, "geometric": geo["fingerprint"]})
-    write_geometric(ws, name, np.where(added, supported, depth), np.where(added[..., None], fitted, normals),
-                     np.where(added, fconf, conf))
-    write_depth_map(old_path, np.where(added, supported, 0.0).astype(np.float32))
-    write_json(confirm_provenance_path(ws, name), {
-        "fingerprint": fingerprint(settings), "geometric": geo["fingerprint"], "settings": settings,
-        "geometric_depth_sha256": file_sha256(geometric_path), "added_fraction": float(added.mean())})
-    timings["writes"] = time.perf_counter() - t0
-    return RefOutcome(name, "confirm", "computed", why, seconds=time.perf_counter() - start, timings=timings)
+    with timer.step("load"):
+        depth, normals, conf = pure_geometric(ws, name, geometric_sha256)
+        ref, fconf = _supported_completion(ctx, name)
+        supported = ref.depth
+        srcs = [_supported_completion(ctx, s)[0] for s in sources]
+    with timer.step("check"):
+        candidates = np.where(depth > 0, 0.0, supported).astype(np.float32)
+        added = np.zeros(depth.shape, bool)
+        if srcs and (candidates > 0).any():
+            res = check_consistency(candidates, None, ref.K, ref.cam_from_world, srcs,
+                                    max_reproj_error=CONFIRM_MAX_REPROJ_ERROR,
+                                    max_depth_error=CONFIRM_MAX_DEPTH_ERROR, workers=2)
+            added = (candidates > 0) & (res.agree.sum(0) >= CONFIRM_MIN_VIEWS)
+        fitted = fit_normals(supported, ref.K)
+        added &= np.any(fitted != 0, axis=-1)
+    with timer.step("writes"):
+        # Crash-safe order: first a record that covers the old and the new pixels (on these geometric
+        # maps), then the maps, then the exact record.
+        old_path = confirm_map_path(ws, name)
+        applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
+            "geometric_depth_sha256") in (None, geometric_sha256)
+        old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
+        old = old if old.shape == depth.shape else np.zeros_like(depth)
+        old_path.parent.mkdir(parents=True, exist_ok=True)
+        write_depth_map(old_path, np.where(added, supported, old).astype(np.float32))
+        write_json(confirm_provenance_path(ws, name), {"fingerprint": None, "geometric": geo["fingerprint"]})
+        write_geometric(ws, name, np.where(added, supported, depth),
+                        np.where(added[..., None], fitted, normals), np.where(added, fconf, conf))
+        write_depth_map(old_path, np.where(added, supported, 0.0).astype(np.float32))
+        write_json(confirm_provenance_path(ws, name), {
+            "fingerprint": fingerprint(settings), "geometric": geo["fingerprint"], "settings": settings,
+            "geometric_depth_sha256": file_sha256(geometric_path), "added_fraction": float(added.mean())})
+    return RefOutcome(name, "confirm", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

@@ -342,12 +342,12 @@ class StereoContext:
             self.images.future(name, self.config.photometric.max_image_size, self.map_size(name),
                                executor=self.loader)
 
-    def submit_write(self, fn, *args) -> None:
+    def submit_write(self, fn, *args, **kwargs) -> None:
         """Run a write job in the writer thread (synchronously when there is none)."""
         if self.writer is None:
-            fn(*args)
+            fn(*args, **kwargs)
         else:
-            self.pending_writes.append(self.writer.submit(fn, *args))
+            self.pending_writes.append(self.writer.submit(fn, *args, **kwargs))
 
     def flush(self) -> None:
         """Wait for every pending write; re-raises the first failure."""

@@ -7,8 +7,6 @@ Writes ``NAME.filled.bin`` depth and confidence maps, which COLMAP's fusion neve
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from ..completion import (
@@ -37,6 +35,8 @@ from .outputs import (
     write_filled,
     write_missing_previews,
 )
+from .reference import PassMaps, PassRecord, Reference
+from .timing import Timer
 
 
 def current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
@@ -70,8 +70,7 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     geometric map exists.
     """
     cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
+    timer = Timer()
     prov = read_provenance(ws, name, "geometric")
     if prov is None or not geometric_files_exist(ws, name):
         remove_filled(ws, name)
@@ -92,59 +91,57 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
             write_missing_previews(ws, name, "filled", entry.depth_range if entry is not None else None)
-        return RefOutcome(name, "filled", "done", seconds=time.perf_counter() - start)
-    t0 = time.perf_counter()
-    # The seeds of the reference and of its sources are what is known.
-    ref = load_maps(ctx, name, "geometric", normals=False, depth_path=seed_map_path(ws, name))
-    srcs = [load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
-            for s in source_prov]
-    h, w = ref.depth.shape
-    # the geometric pass's own maps: not the confirmed completion a previous run added to them
-    geometric_depth, _, geo_conf = pure_geometric(ws, name)
-    geometric_kept = geometric_depth > 0
-    if geometric_kept.shape != (h, w):
-        raise MapFormatError(
-            f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
-        )
-    photo = read_depth_map(ws.depth_map_path(name, "photometric"))
-    if photo.shape != (h, w):
-        raise MapFormatError(
-            f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
-        )
-    photo_conf = read_confidence(ws, name, "photometric", (h, w))
-    timings["load"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    kept = ref.depth > 0
-    splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.completion.min_sources)
-    splatted = ~kept & (splat > 0)
-    known = np.where(kept, ref.depth, splat).astype(np.float32)
-    timings["splat"] = time.perf_counter() - t0
+        return RefOutcome(name, "filled", "done", seconds=timer.elapsed())
+    with timer.step("load"):
+        # The seeds of the reference and of its sources are what is known.
+        ref = load_maps(ctx, name, "geometric", normals=False, depth_path=seed_map_path(ws, name))
+        srcs = [load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
+                for s in source_prov]
+        h, w = ref.depth.shape
+        # the geometric pass's own maps: not the confirmed completion a previous run added to them
+        geometric_depth, _, geo_conf = pure_geometric(ws, name)
+        geometric_kept = geometric_depth > 0
+        if geometric_kept.shape != (h, w):
+            raise MapFormatError(
+                f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
+            )
+        photo = read_depth_map(ws.depth_map_path(name, "photometric"))
+        if photo.shape != (h, w):
+            raise MapFormatError(
+                f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
+            )
+        photo_conf = read_confidence(ws, name, "photometric", (h, w))
+    with timer.step("splat"):
+        kept = ref.depth > 0
+        splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.completion.min_sources)
+        splatted = ~kept & (splat > 0)
+        known = np.where(kept, ref.depth, splat).astype(np.float32)
     segmented, refused, inliers = np.zeros_like(kept), np.zeros_like(kept), None
     if cfg.completion.segments:
-        t0 = time.perf_counter()
-        image = ctx.images.get(name, cfg.photometric.max_image_size, (w, h))
-        plane, inliers, refused = segment_planes(known, image, ~kept)
-        segmented = ~kept & (plane > 0)
-        refused &= ~splatted
-        timings["segments"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    depth = complete_depth(known, photo)
-    if cfg.completion.segments:
-        depth = np.where(segmented, plane, depth).astype(np.float32)
-    # Nothing supports a depth where a segment's plane was refused or the local fit has too few known
-    # pixels around it: those pixels keep the network's depth, with confidence 0 (docs/CONVENTIONS.md).
-    fitted = ~kept & ~splatted & ~segmented
-    unsupported = refused | (fitted & (fit_support(known) < FIT_MIN_SUPPORT))
-    depth = np.where(unsupported, photo, depth).astype(np.float32)
-    conf = ctx.calibration.apply("filled", completed_confidence(
-        kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers), depth > 0)
-    conf = np.where(unsupported, 0.0, conf).astype(np.float32)
-    timings["fit"] = time.perf_counter() - t0
+        with timer.step("segments"):
+            image = ctx.images.get(name, cfg.photometric.max_image_size, (w, h))
+            plane, inliers, refused = segment_planes(known, image, ~kept)
+            segmented = ~kept & (plane > 0)
+            refused &= ~splatted
+    with timer.step("fit"):
+        depth = complete_depth(known, photo)
+        if cfg.completion.segments:
+            depth = np.where(segmented, plane, depth).astype(np.float32)
+        # Nothing supports a depth where a segment's plane was refused or the local fit has too few known
+        # pixels around it: those pixels keep the network's depth, with confidence 0 (docs/CONVENTIONS.md).
+        fitted = ~kept & ~splatted & ~segmented
+        unsupported = refused | (fitted & (fit_support(known) < FIT_MIN_SUPPORT))
+        depth = np.where(unsupported, photo, depth).astype(np.float32)
+        conf = ctx.calibration.apply("filled", completed_confidence(
+            kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers), depth > 0)
+        conf = np.where(unsupported, 0.0, conf).astype(np.float32)
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
              "geometric_fraction": float(geometric_kept.mean()),
              "splatted_fraction": float((splatted & ~segmented).mean()),
              "segmented_fraction": float(segmented.mean()),
              "unsupported_fraction": float(unsupported.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
-    ctx.submit_write(write_filled, ws, name, depth, conf, settings, extra, cfg.previews, dr, timings)
-    return RefOutcome(name, "filled", "computed", why, seconds=time.perf_counter() - start, timings=timings)
+    ref = Reference.of(ws, name, source_prov, dr).with_pass("filled", PassMaps(depth, conf),
+                                                            PassRecord(settings, extra))
+    ctx.submit_write(write_filled, ref, previews=cfg.previews, timer=timer)
+    return RefOutcome(name, "filled", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

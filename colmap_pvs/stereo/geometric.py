@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +45,8 @@ from .outputs import (
     write_seeds,
 )
 from .photometric import network_maps
+from .reference import PassMaps, PassRecord, Reference
+from .timing import Timer
 
 logger = logging.getLogger(__name__)
 
@@ -206,14 +207,16 @@ def _seeds(cfg: StereoConfig, ref: SourceMaps, res) -> np.ndarray:
 
 @dataclass
 class Checked:
-    """A reference's check of its photometric maps (no re-estimate): its seeds ``[H, W]`` and, when
-    another reference's geometric pass made it in this run, its checked depth and confidence
-    ``[H, W]`` (0 where dropped) before the sources' seeds are added, for its own pass to reuse
-    (``None`` for seeds read from disk or after its own pass)."""
+    """A reference's check: its seeds ``[H, W]`` (from its photometric maps) and its checked depth and
+    confidence ``[H, W]`` (0 where dropped) before the sources' seeds are added, ``reestimated`` when
+    they are the check of a re-estimate. Cached in ``ctx.seed_cache`` for other references' passes,
+    with the depth and confidence when another reference's geometric pass made it in this run, for its
+    own pass to reuse (``None`` for seeds read from disk or after its own pass)."""
 
     seeds: np.ndarray
     depth: np.ndarray | None = None
     conf: np.ndarray | None = None
+    reestimated: bool = False
 
 
 def _warn_if_every_source_is_too_close(ctx: StereoContext, name: str, sources: list[str], ref: SourceMaps,
@@ -305,52 +308,33 @@ def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarra
     return checked.seeds
 
 
-def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
-    """The geometric pass of reference ``name``, once the photometric maps of it and of its sources
-    exist: its checked maps and seeds, unless current (module docstring)."""
-    cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
-    setup = _check_setup(ctx, name)
-    if isinstance(setup, str):
-        return RefOutcome(name, "geometric", "skipped", setup)
-    prov, sources, missing, entry = setup.prov, setup.sources, setup.missing, setup.entry
-    seed_fingerprint = fingerprint(setup.settings)
-    settings = dict(setup.settings, **pass_settings(cfg, "geometric"),  # + those the seeds ignore
-                    confidence_calibration=ctx.calibration.settings("geometric"))
-    splat_sources: dict[str, CheckSetup] = {}  # the sources whose seeds are projected in: their checks
-    if cfg.geometric.splat_min_sources > 0:
-        for s in sources:
-            found = _check_setup(ctx, s)
-            if not isinstance(found, str):
-                splat_sources[s] = found
-        settings["splat_seeds"] = {s: fingerprint(found.settings) for s, found in splat_sources.items()}
-    size = tuple(prov.get("image_size", ctx.map_size(name)))
-    why = stale_reason(ws, name, "geometric", settings, size, cfg.overwrite)
-    if why is None and not geometric_files_exist(ws, name):
-        why = "seed map missing"
-    if why is None:
-        if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
-            write_missing_previews(ws, name, "geometric", entry.depth_range if entry is not None else None)
-        return RefOutcome(name, "geometric", "done", seconds=time.perf_counter() - start)
-    t0 = time.perf_counter()
-    all_sources = list(prov.get("sources", []))
-    reestimate = _reestimates(ctx, setup)
-    reestimated = False
+def _reused_check(ctx: StereoContext, name: str, seed_fingerprint: str, timer: Timer) -> Checked | None:
+    """The check of ``name``'s photometric maps that another reference's pass made earlier in this run
+    (for its seeds; :func:`_source_seeds`), or ``None``."""
     cached = ctx.seed_cache.get(name)
-    if (not reestimate and cached is not None and cached[0] == seed_fingerprint
-            and cached[1].depth is not None):  # checked earlier in this run, for another pass's seeds
+    if cached is None or cached[0] != seed_fingerprint or cached[1].depth is None:
+        return None
+    with timer.step("reused_check"):
         checked = cached[1]
-        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
-        timings["reused_check"] = time.perf_counter() - t0
-    elif not reestimate:
-        checked = _check_photometric(ctx, name, setup)
-        seeds, depth, conf = checked.seeds, checked.depth.copy(), checked.conf.copy()
-        timings["consistency"] = time.perf_counter() - t0
-    else:
-        # COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps;
-        # here the depth they agree on becomes dense hints of a second network run (the coarse planes
-        # centred on it, the cost modulated around it), whose maps are then checked as below.
+        return Checked(checked.seeds, checked.depth.copy(), checked.conf.copy())
+
+
+def _checked_photometric(ctx: StereoContext, name: str, setup: CheckSetup, timer: Timer) -> Checked:
+    """The check of ``name``'s photometric maps (:func:`_check_photometric`)."""
+    with timer.step("consistency"):
+        return _check_photometric(ctx, name, setup)
+
+
+def _reestimate(ctx: StereoContext, name: str, setup: CheckSetup, timer: Timer) -> Checked | str:
+    """The check of a re-estimate of ``name`` (``geom_reestimate``), or why the network could not run.
+
+    COLMAP's geometric PatchMatch re-estimates each reference with its sources' photometric maps; here
+    the depth they agree on becomes dense hints of a second network run (the coarse planes centred on
+    it, the cost modulated around it), whose maps are then checked as the photometric maps would be.
+    """
+    cfg = ctx.config
+    all_sources = list(setup.prov.get("sources", []))
+    with timer.step("reestimate_hints"):
         ref, srcs, vis = _load_check(ctx, name, setup)
         h, w = ref.depth.shape
         check = _check_kwargs(ctx)
@@ -359,57 +343,107 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         agreed = (ref.depth > 0) & (first.count >= cfg.geometric.min_consistent)
         hints = np.where(agreed, first.mean_depth(ref.depth), 0.0).astype(np.float32)
         del first
-        timings["reestimate_hints"] = time.perf_counter() - t0
-        network_timings: dict[str, float] = {}
-        maps = network_maps(ctx, name, all_sources, network_timings, dense_hints=hints)
-        timings.update({f"reestimate_{k}": v for k, v in network_timings.items()})
-        if isinstance(maps, str):
-            return RefOutcome(name, "geometric", "skipped", maps)
-        ref = SourceMaps(maps.depth, maps.normals, ref.K, ref.cam_from_world)
-        vis = _check_visibility(maps.visibility, all_sources, sources, (h, w))
-        reestimated = True
-        t0 = time.perf_counter()
+    network_timer = Timer()
+    maps = network_maps(ctx, name, all_sources, network_timer, dense_hints=hints)
+    timer.add(network_timer, "reestimate_")
+    if isinstance(maps, str):
+        return maps
+    ref = SourceMaps(maps.depth, maps.normals, ref.K, ref.cam_from_world)
+    vis = _check_visibility(maps.visibility, all_sources, setup.sources, (h, w))
+    with timer.step("consistency"):
         res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-        depth, conf = _kept(ctx, name, sources, ref, res, vis)
+        depth, conf = _kept(ctx, name, setup.sources, ref, res, vis)
         del res
-        timings["consistency"] = time.perf_counter() - t0
+    return Checked(seeds, depth, conf, reestimated=True)
+
+
+def _splat_sources(ctx: StereoContext, setup: CheckSetup) -> dict[str, CheckSetup]:
+    """The checked sources whose seeds are projected into dropped pixels (``geom_splat_min_sources``):
+    each with its own check's setup."""
+    if ctx.config.geometric.splat_min_sources <= 0:
+        return {}
+    found = {s: _check_setup(ctx, s) for s in setup.sources}
+    return {s: f for s, f in found.items() if not isinstance(f, str)}
+
+
+def _add_splatted(ctx: StereoContext, name: str, setup: CheckSetup, splat_sources: dict[str, CheckSetup],
+                  checked: Checked, timer: Timer) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(depth, conf, count)``: the checked maps with the dropped pixels whose surface other views
+    confirmed: their seeds projected in (nearest surface per source), the median where enough of them
+    agree (docs/CONVENTIONS.md), and how many pixels that added."""
+    cfg = ctx.config
+    depth, conf = checked.depth, checked.conf
     h, w = depth.shape
-    K = ctx.map_K(name, (w, h))
-    cam_from_world = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
-    keep = depth > 0
-    splatted = 0
-    if splat_sources:
-        # A dropped pixel whose surface other views confirmed: their seeds projected in (nearest
-        # surface per source), the median where enough of them agree (docs/CONVENTIONS.md).
-        t0 = time.perf_counter()
+    with timer.step("splat_seeds"):
         seed_maps = []
         for s, found in splat_sources.items():
             seeds_s = _source_seeds(ctx, s, found)
             sh, sw = seeds_s.shape
             seed_maps.append(SourceMaps(seeds_s, None, ctx.map_K(s, (sw, sh)),
                                         to_homogeneous(ctx.sparse.image_by_name(s).cam_from_world)))
-        timings["splat_seeds"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+    with timer.step("splat"):
+        K = ctx.map_K(name, (w, h))
+        cam_from_world = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
         splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geometric.splat_min_sources)
-        splat_conf = ctx.calibration.apply("geometric", SPLAT_CONFIDENCE * support / max(1, len(sources)),
-                                           splat > 0)
-        added = ~keep & (splat > 0) & (splat_conf >= cfg.geometric.min_confidence)
+        share = SPLAT_CONFIDENCE * support / max(1, len(setup.sources))
+        splat_conf = ctx.calibration.apply("geometric", share, splat > 0)
+        added = ~(depth > 0) & (splat > 0) & (splat_conf >= cfg.geometric.min_confidence)
         depth = np.where(added, splat, depth).astype(np.float32)
         conf = np.where(added, splat_conf, conf).astype(np.float32)
-        splatted = int(added.sum())
-        timings["splat"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    normals = fit_normals(depth, K)
-    depth[~np.any(normals != 0, axis=-1)] = 0.0
-    conf[depth == 0] = 0.0
-    timings["normals"] = time.perf_counter() - t0
+    return depth, conf, int(added.sum())
+
+
+def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
+    """The geometric pass of reference ``name``, once the photometric maps of it and of its sources
+    exist: its checked maps and seeds, unless current (module docstring).
+
+    Its check is one of three: reused from another reference's pass in this run (:func:`_reused_check`),
+    of its photometric maps (:func:`_checked_photometric`) or of a re-estimate (:func:`_reestimate`);
+    then the sources' seeds fill dropped pixels (:func:`_add_splatted`) and normals are fitted.
+    """
+    cfg, ws = ctx.config, ctx.workspace
+    timer = Timer()
+    setup = _check_setup(ctx, name)
+    if isinstance(setup, str):
+        return RefOutcome(name, "geometric", "skipped", setup)
+    entry = setup.entry
+    seed_fingerprint = fingerprint(setup.settings)
+    settings = dict(setup.settings, **pass_settings(cfg, "geometric"),  # + those the seeds ignore
+                    confidence_calibration=ctx.calibration.settings("geometric"))
+    splat_sources = _splat_sources(ctx, setup)
+    if cfg.geometric.splat_min_sources > 0:
+        settings["splat_seeds"] = {s: fingerprint(found.settings) for s, found in splat_sources.items()}
+    size = tuple(setup.prov.get("image_size", ctx.map_size(name)))
+    why = stale_reason(ws, name, "geometric", settings, size, cfg.overwrite)
+    if why is None and not geometric_files_exist(ws, name):
+        why = "seed map missing"
+    if why is None:
+        if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
+            write_missing_previews(ws, name, "geometric", entry.depth_range if entry is not None else None)
+        return RefOutcome(name, "geometric", "done", seconds=timer.elapsed())
+    if _reestimates(ctx, setup):
+        checked = _reestimate(ctx, name, setup, timer)
+        if isinstance(checked, str):
+            return RefOutcome(name, "geometric", "skipped", checked)
+    else:
+        checked = (_reused_check(ctx, name, seed_fingerprint, timer)
+                   or _checked_photometric(ctx, name, setup, timer))
+    depth, conf, splatted = checked.depth, checked.conf, 0
+    if splat_sources:
+        depth, conf, splatted = _add_splatted(ctx, name, setup, splat_sources, checked, timer)
+    with timer.step("normals"):
+        h, w = depth.shape
+        normals = fit_normals(depth, ctx.map_K(name, (w, h)))
+        depth[~np.any(normals != 0, axis=-1)] = 0.0
+        conf[depth == 0] = 0.0
     dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
                                                       float(depth.max(initial=2.0)))
-    extra = {"image_size": [w, h], "sources": sources, "missing_sources": missing,
+    extra = {"image_size": [w, h], "sources": setup.sources, "missing_sources": setup.missing,
              "kept_fraction": float((depth > 0).mean()), "splatted_fraction": splatted / depth.size,
-             "reestimated": reestimated}
-    _remember_seeds(ctx, name, seed_fingerprint, Checked(seeds))  # its own pass reruns its own check
-    ctx.submit_write(write_pass, ws, name, "geometric", depth, normals, conf, settings, extra, cfg.previews,
-                     dr, timings, None, (), seeds, seed_fingerprint)
-    return RefOutcome(name, "geometric", "computed", why, seconds=time.perf_counter() - start,
-                      timings=timings)
+             "reestimated": checked.reestimated}
+    _remember_seeds(ctx, name, seed_fingerprint, Checked(checked.seeds))  # its own pass reruns its own check
+    maps = PassMaps(depth, conf, normals, seeds=checked.seeds)
+    ref = Reference.of(ws, name, setup.prov.get("sources", []), dr).with_pass(
+        "geometric", maps, PassRecord(settings, extra, seed_fingerprint))
+    ctx.submit_write(write_pass, ref, "geometric", previews=cfg.previews, timer=timer)
+    return RefOutcome(name, "geometric", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

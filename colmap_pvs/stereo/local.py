@@ -7,7 +7,6 @@ Python users (and the Ray backend) use :func:`~colmap_pvs.stereo.context.prepare
 from __future__ import annotations
 
 import logging
-import time
 
 from tqdm import tqdm
 
@@ -22,6 +21,7 @@ from .filled import filled_pass
 from .geometric import geometric_pass
 from .outputs import pass_summary, remove_filled
 from .photometric import photometric_pass
+from .timing import Timer, sum_steps
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
                     outcomes: list[RefOutcome], skip: set[str]) -> None:
     """Run the geometric or the completion pass over ``names`` (but ``skip``), filling
     ``result.{stage}_processed / _done / _skipped`` and ``result.pass_seconds[stage]``."""
-    t_pass = time.perf_counter()
+    timer = Timer()
     desc, label = _PASS_LABELS[stage]
     processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
     for name in tqdm(names, desc=desc, unit="image"):
@@ -86,7 +86,7 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
         else:
             processed.append(name)
     ctx.flush()
-    result.pass_seconds[stage] = time.perf_counter() - t_pass
+    result.pass_seconds[stage] = timer.elapsed()
     logger.info("stereo %s", pass_summary(stage, outcomes))
 
 
@@ -96,16 +96,16 @@ def final_kind(config: StereoConfig) -> Stage:
 
 def run_local(config: StereoConfig) -> StereoResult:
     """:func:`run_stereo` in this process."""
-    wall = time.perf_counter()
-    ctx = prepare_stereo(config, background_io=True)
-    ws = ctx.workspace
-    remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
-    t_prepare = time.perf_counter() - wall
+    wall = Timer()
+    with wall.step("prepare"):
+        ctx = prepare_stereo(config, background_io=True)
+        ws = ctx.workspace
+        remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
                 checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
     result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
     result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
-    result.timings["prepare"] = t_prepare
+    result.timings["prepare"] = wall.steps["prepare"]
     outcomes: list[RefOutcome] = []
     names = list(ctx.references)
     note = patch_match_note(ws, ctx.references, config.photometric.num_views)
@@ -114,7 +114,7 @@ def run_local(config: StereoConfig) -> StereoResult:
     result.auxiliary = auxiliary_references(ctx) if config.geometric.enabled else []
     work = names + result.auxiliary
     try:
-        t_pass = time.perf_counter()
+        timer = Timer()
         bar = tqdm(work, desc="stereo (photometric)", unit="image")
         for i, name in enumerate(bar):
             if i + 1 < len(work):
@@ -137,7 +137,7 @@ def run_local(config: StereoConfig) -> StereoResult:
             if sources is not None:
                 result.sources[name] = sources
         ctx.flush()
-        result.pass_seconds["photometric"] = time.perf_counter() - t_pass
+        result.pass_seconds["photometric"] = timer.elapsed()
         logger.info("stereo %s", pass_summary("photometric", outcomes))
         if config.geometric.enabled:
             _run_later_pass(ctx, names, "geometric", result, outcomes, set(result.skipped))
@@ -151,10 +151,7 @@ def run_local(config: StereoConfig) -> StereoResult:
                 remove_filled(ws, name)
     finally:
         ctx.close()
-    for out in outcomes:
-        for stage, sec in out.timings.items():
-            key = stage if out.stage == "photometric" else f"{out.stage}.{stage}"
-            result.timings[key] = result.timings.get(key, 0.0) + sec
+    sum_steps(outcomes, into=result.timings)
     kind = final_kind(config)
     done = [n for n in names
             if ws.depth_map_path(n, kind).is_file() and ws.normal_map_path(n, kind).is_file()]
@@ -166,7 +163,7 @@ def run_local(config: StereoConfig) -> StereoResult:
         )
     write_fusion_cfg(ws.fusion_cfg, done)
     computed = len(set(result.processed) | set(result.geometric_processed) | set(result.filled_processed))
-    total = time.perf_counter() - wall
+    total = wall.elapsed()
     result.pass_seconds["total"] = total
     result.seconds_per_image = total / computed if computed else 0.0
     logger.info("stereo: finished in %.1f s, %.2f s per computed image", total, result.seconds_per_image)

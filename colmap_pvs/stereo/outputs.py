@@ -11,7 +11,7 @@ import hashlib
 import json
 import logging
 import threading
-import time
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -36,23 +36,24 @@ from ..io.maps import (
 )
 from ..io.workspace import Workspace, move_aside
 from .config import FORMAT_VERSIONS, Stage, pass_settings
+from .reference import (
+    PassMaps,
+    PassPaths,
+    PassRecord,
+    Reference,
+    confirm_map_path,
+    confirm_provenance_path,
+    provenance_path,
+    seed_map_path,
+    seed_provenance_path,
+    visibility_map_path,
+)
+from .timing import Timer
 
 if TYPE_CHECKING:
     from .context import StereoContext
 
 logger = logging.getLogger(__name__)
-
-
-def provenance_path(ws: Workspace, name: str, stage: Stage) -> Path:
-    """``stereo/provenance/NAME.STAGE.json``: what produced that pass's maps of ``name``."""
-    ws.depth_map_path(name, stage)  # validates name and stage
-    return ws.stereo_dir / "provenance" / f"{name}.{stage}.json"
-
-
-def visibility_map_path(ws: Workspace, name: str) -> Path:
-    """``stereo/visibility_maps/NAME.bin``: the network's learned visibility of each source."""
-    ws.depth_map_path(name, "photometric")  # validates name
-    return ws.stereo_dir / "visibility_maps" / f"{name}.bin"
 
 
 def read_visibility(ws: Workspace, name: str) -> np.ndarray | None:
@@ -62,13 +63,6 @@ def read_visibility(ws: Workspace, name: str) -> np.ndarray | None:
         return None
     coarse = read_array(path)
     return (coarse[..., None] if coarse.ndim == 2 else coarse).transpose(2, 0, 1)
-
-
-def seed_map_path(ws: Workspace, name: str) -> Path:
-    """``stereo/seed_maps/NAME.bin``: the depth of the pixels of ``name`` that seed its dense completion
-    (at least ``geom_seed_min_consistent`` sources agree within ``geom_seed_depth_error``), 0 elsewhere."""
-    ws.depth_map_path(name, "geometric")  # validates name
-    return ws.stereo_dir / "seed_maps" / f"{name}.bin"
 
 
 def geometric_files_exist(ws: Workspace, name: str) -> bool:
@@ -244,95 +238,82 @@ def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, ext
     write_json(provenance_path(ws, name, stage), provenance_record(settings, extra))
 
 
-def write_pass(ws: Workspace, name: str, stage: Stage, depth, normals, conf, settings, extra, previews,
-                depth_range, timings, vis=None, sources=(), seeds=None, seed_fingerprint=None) -> None:
-    """Write one pass's maps, then its previews: every file is written beside its place first (a full
-    disk leaves the old maps as they were), then the old depth is removed and the new files renamed
-    into place, the depth last (it marks the pass done).
+def write_pass(ref: Reference, stage: Stage, *, previews: bool, timer: Timer) -> None:
+    """Write ``ref``'s maps and record of ``stage`` (``ref.maps[stage]``, ``ref.records[stage]``), then
+    with ``previews`` its previews: every file is written beside its place first (a full disk leaves
+    the old maps as they were), then the old depth is removed and the new files renamed into place,
+    the depth last (it marks the pass done). Times ``writes`` and ``previews`` in ``timer``.
 
-    ``vis`` ``[S, h, w]`` (photometric pass only) goes to ``stereo/visibility_maps/NAME.bin``,
-    ``seeds`` ``[h, w]`` (geometric pass only) to :func:`seed_map_path`. Preview
+    The maps' ``visibility`` (photometric pass) goes to ``stereo/visibility_maps/NAME.bin``, their
+    ``seeds`` (geometric pass) to :func:`seed_map_path` with the record's ``seed_fingerprint``. Preview
     names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
-    t0 = time.perf_counter()
-    files = [(ws.confidence_map_path(name, stage), encode_array(ws.confidence_map_path(name, stage),
-                                                                conf.astype(np.float32)))]
-    if vis is not None:
-        vis_path = visibility_map_path(ws, name)
-        files.append((vis_path, encode_array(vis_path, np.ascontiguousarray(vis.transpose(1, 2, 0))
-                                             if vis.shape[0] else np.zeros((1, 1, 1)))))
-    if seeds is not None:  # the seed map, then its fingerprint (which marks it current)
-        seed_path = seed_map_path(ws, name)
-        files.append((seed_path, encode_array(seed_path, seeds.astype(np.float32))))
-        files.append((seed_provenance_path(ws, name), json_bytes({"fingerprint": seed_fingerprint})))
-    normal_path = ws.normal_map_path(name, stage)
-    files.append((normal_path, encode_normal_map(normal_path, normals)))
-    files.append((provenance_path(ws, name, stage), json_bytes(provenance_record(settings, extra))))
-    depth_path = ws.depth_map_path(name, stage)
-    files.append((depth_path, encode_depth_map(depth_path, depth)))  # last: marks the pass done
+    maps, record, paths = ref.maps[stage], ref.records[stage], ref.paths
+    out = paths[stage]
+    with timer.step("writes"):
+        files = [(out.confidence, encode_array(out.confidence, maps.confidence.astype(np.float32)))]
+        if maps.visibility is not None:
+            vis = maps.visibility
+            files.append((paths.visibility, encode_array(paths.visibility, np.ascontiguousarray(
+                vis.transpose(1, 2, 0)) if vis.shape[0] else np.zeros((1, 1, 1)))))
+        if maps.seeds is not None:  # the seed map, then its fingerprint (which marks it current)
+            files.append((paths.seeds, encode_array(paths.seeds, maps.seeds.astype(np.float32))))
+            files.append((paths.seed_provenance, json_bytes({"fingerprint": record.seed_fingerprint})))
+        files.append((out.normals, encode_normal_map(out.normals, maps.normals)))
+        files.append((out.provenance, json_bytes(provenance_record(record.settings, record.extra))))
+        files.append((out.depth, encode_depth_map(out.depth, maps.depth)))  # last: marks the pass done
 
-    def drop_old() -> None:  # once every new file is on disk
-        _set_aside_colmaps_maps(ws, name, stage)
-        # The old depth goes first: new provenance beside an old depth would look done after a crash.
-        depth_path.unlink(missing_ok=True)
-        if seeds is not None:
-            seed_provenance_path(ws, name).unlink(missing_ok=True)
-        if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
-            confirm_provenance_path(ws, name).unlink(missing_ok=True)
-            confirm_map_path(ws, name).unlink(missing_ok=True)
+        def drop_old() -> None:  # once every new file is on disk
+            _set_aside_colmaps_maps(out, paths.stereo_dir)
+            # The old depth goes first: new provenance beside an old depth would look done after a crash.
+            out.depth.unlink(missing_ok=True)
+            if maps.seeds is not None:
+                paths.seed_provenance.unlink(missing_ok=True)
+            if stage == "geometric":  # new maps of the pass itself: nothing confirmed was added to them
+                paths.confirm_provenance.unlink(missing_ok=True)
+                paths.confirm_map.unlink(missing_ok=True)
 
-    write_files_together(files, before_commit=drop_old)
-    timings["writes"] = time.perf_counter() - t0
+        write_files_together(files, before_commit=drop_old)
     if previews:
-        t0 = time.perf_counter()
-        write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
-        timings["previews"] = time.perf_counter() - t0
+        with timer.step("previews"):
+            write_previews(ref, stage)
 
 
 _warned_foreign: set[Path] = set()  # the stereo folders whose COLMAP maps were reported this process
 _warned_lock = threading.Lock()
 
 
-def _set_aside_colmaps_maps(ws: Workspace, name: str, stage: Stage) -> None:
-    """Depth and normal maps of ``name`` that colmap-pvs did not write (no provenance: COLMAP's own
+def _set_aside_colmaps_maps(out: PassPaths, stereo_dir: Path) -> None:
+    """Depth and normal maps at ``out`` that colmap-pvs did not write (no provenance: COLMAP's own
     ``patch_match_stereo`` output, hours of GPU time) are renamed to ``*.bin.bak`` (``.bak.2``, ... when
     taken) before ours replace them; one WARNING per workspace says so (each file at DEBUG)."""
-    depth = ws.depth_map_path(name, stage)
-    if not depth.is_file() or provenance_path(ws, name, stage).is_file():
+    if not out.depth.is_file() or out.provenance.is_file():
         return
-    for path in (depth, ws.normal_map_path(name, stage)):
+    for path in (out.depth, out.normals):
         if path.is_file():
             logger.debug("kept %s as %s", path, move_aside(path))
     with _warned_lock:
-        first = ws.stereo_dir not in _warned_foreign
-        _warned_foreign.add(ws.stereo_dir)
+        first = stereo_dir not in _warned_foreign
+        _warned_foreign.add(stereo_dir)
     if first:
         logger.warning("%s holds depth and normal maps colmap-pvs did not write (COLMAP's?), e.g. %s: each "
-                       "is kept as NAME.bin.bak beside ours", ws.stereo_dir, depth.name)
+                       "is kept as NAME.bin.bak beside ours", stereo_dir, out.depth.name)
 
 
-def preview_path(ws: Workspace, name: str, stage: Stage) -> Path:
-    """The depth preview of ``name``'s ``stage`` maps: ``stereo/previews/NAME.photometric.depth.png``,
-    ``NAME.depth.png`` (geometric) or ``NAME.filled.depth.png``."""
-    ws.depth_map_path(name, stage)  # validates name and stage
-    infix = "" if stage == "geometric" else f".{stage}"
-    return ws.stereo_dir / "previews" / f"{name}{infix}.depth.png"
-
-
-def write_previews(ws: Workspace, name: str, stage: Stage, depth, depth_range, normals=None, conf=None,
-                   vis=None, sources=()) -> None:
-    """PNG previews of one pass's maps: depth (:func:`preview_path`), and where given normals,
-    confidence and the learned visibility of each source ``vis`` ``[S, h, w]``."""
-    depth_path = preview_path(ws, name, stage)
+def write_previews(ref: Reference, stage: Stage) -> None:
+    """PNG previews of ``ref``'s ``stage`` maps, coloured over ``ref.depth_range``: depth
+    (:func:`preview_path`), and but for the dense completion normals, confidence and the learned
+    visibility of each of ``ref.sources`` where the maps have it."""
+    maps, depth_path = ref.maps[stage], ref.paths[stage].preview
     stem = str(depth_path)[: -len(".depth.png")]
-    save_depth_preview(depth_path, depth, vmin=depth_range[0], vmax=depth_range[1])
-    if normals is not None:
-        save_normal_preview(f"{stem}.normal.png", normals)
-    if conf is not None:
-        save_scalar_preview(f"{stem}.confidence.png", conf)
-    for k, src in enumerate(sources if vis is not None else ()):
-        save_scalar_preview(ws.stereo_dir / "previews" / f"{name}.visibility.{k:02d}.{Path(src).stem}.png",
-                            vis[k])
+    save_depth_preview(depth_path, maps.depth, vmin=ref.depth_range[0], vmax=ref.depth_range[1])
+    if stage == "filled":
+        return
+    if maps.normals is not None:
+        save_normal_preview(f"{stem}.normal.png", maps.normals)
+    save_scalar_preview(f"{stem}.confidence.png", maps.confidence)
+    for k, src in enumerate(ref.sources if maps.visibility is not None else ()):
+        save_scalar_preview(ref.paths.visibility_preview(ref.name, k, src), maps.visibility[k])
 
 
 def write_missing_previews(ws: Workspace, name: str, stage: Stage,
@@ -340,29 +321,26 @@ def write_missing_previews(ws: Workspace, name: str, stage: Stage,
     """The previews of a finished pass that has none (a rerun that only adds ``--previews``), from its
     maps on disk; ``depth_range`` ``None``: the 1st-99th percentile of its depth. Returns whether it
     wrote them."""
-    if preview_path(ws, name, stage).is_file():
+    ref = Reference.of(ws, name)
+    out = ref.paths[stage]
+    if out.preview.is_file():
         return False
-    depth = read_depth_map(ws.depth_map_path(name, stage))
+    depth = read_depth_map(out.depth)
     if depth_range is None:
         valid = depth[depth > 0]
         depth_range = tuple(np.percentile(valid, [1, 99])) if valid.size else (1.0, 2.0)
     if stage == "filled":
-        write_previews(ws, name, stage, depth, depth_range)
-        return True
-    normals = read_normal_map(ws.normal_map_path(name, stage))
-    conf = read_confidence(ws, name, stage, depth.shape)
-    vis, sources = None, []
+        maps = PassMaps(depth, np.zeros_like(depth))
+    else:
+        maps = PassMaps(depth, read_confidence(ws, name, stage, depth.shape), read_normal_map(out.normals))
     if stage == "photometric":
         sources = (read_provenance(ws, name, stage) or {}).get("sources", [])
         vis = read_visibility(ws, name)
-        vis = vis if vis is not None and vis.shape[0] == len(sources) else None
-    write_previews(ws, name, stage, depth, depth_range, normals, conf, vis, sources)
+        if vis is not None and vis.shape[0] == len(sources):
+            ref = replace(ref, sources=tuple(sources))
+            maps = replace(maps, visibility=vis)
+    write_previews(ref.with_pass(stage, maps, PassRecord({}, {}), depth_range), stage)
     return True
-
-
-def seed_provenance_path(ws: Workspace, name: str) -> Path:
-    """``stereo/seed_maps/NAME.json``: the fingerprint of the check that made ``NAME.bin``."""
-    return seed_map_path(ws, name).with_suffix(".json")
 
 
 def write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -> None:
@@ -390,39 +368,24 @@ def remove_filled(ws: Workspace, name: str) -> None:
         path.unlink(missing_ok=True)
 
 
-def write_filled(ws: Workspace, name: str, depth, conf, settings, extra, previews, depth_range,
-                  timings) -> None:
-    """Write the dense completion: confidence, provenance, then the depth (which marks it done), each
-    beside its place first, so that a full disk leaves the old completion as it was."""
-    t0 = time.perf_counter()
-    conf_path, depth_path = ws.confidence_map_path(name, "filled"), ws.depth_map_path(name, "filled")
-    # The old depth goes once the new files are written, before they are renamed into place: new
-    # provenance beside an old depth would look done after a crash.
-    record = json_bytes(provenance_record(settings, extra))
-    write_files_together([(conf_path, encode_array(conf_path, conf.astype(np.float32))),
-                          (provenance_path(ws, name, "filled"), record),
-                          (depth_path, encode_depth_map(depth_path, depth))],
-                         before_commit=lambda: depth_path.unlink(missing_ok=True))
-    timings["writes"] = time.perf_counter() - t0
+def write_filled(ref: Reference, *, previews: bool, timer: Timer) -> None:
+    """Write ``ref``'s dense completion (``ref.maps["filled"]``, ``ref.records["filled"]``): confidence,
+    provenance, then the depth (which marks it done), each beside its place first, so that a full disk
+    leaves the old completion as it was; with ``previews`` its depth preview. Times ``writes``."""
+    maps, record, out = ref.maps["filled"], ref.records["filled"], ref.paths["filled"]
+    with timer.step("writes"):
+        # The old depth goes once the new files are written, before they are renamed into place: new
+        # provenance beside an old depth would look done after a crash.
+        conf = encode_array(out.confidence, maps.confidence.astype(np.float32))
+        write_files_together([(out.confidence, conf),
+                              (out.provenance, json_bytes(provenance_record(record.settings, record.extra))),
+                              (out.depth, encode_depth_map(out.depth, maps.depth))],
+                             before_commit=lambda: out.depth.unlink(missing_ok=True))
     if previews:
-        write_previews(ws, name, "filled", depth, depth_range)
+        write_previews(ref, "filled")
 
 
 # --------------------------------------------------------------------------- the confirmed completion
-
-
-def confirm_map_path(ws: Workspace, name: str) -> Path:
-    """``stereo/confirm_maps/NAME.bin``: the depth of the pixels the confirmation added to ``name``'s
-    geometric maps, 0 elsewhere."""
-    ws.depth_map_path(name, "geometric")  # validates name
-    return ws.stereo_dir / "confirm_maps" / f"{name}.bin"
-
-
-def confirm_provenance_path(ws: Workspace, name: str) -> Path:
-    """``stereo/provenance/NAME.confirm.json``: what the confirmation read, and the fingerprint and
-    depth file hash of the geometric maps it wrote."""
-    ws.depth_map_path(name, "geometric")  # validates name
-    return ws.stereo_dir / "provenance" / f"{name}.confirm.json"
 
 
 def pure_geometric(ws: Workspace, name: str, depth_sha256: str | None = None,

@@ -11,8 +11,6 @@ network size, sources in the provenance file).
 from __future__ import annotations
 
 import logging
-import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,62 +30,52 @@ from .config import PRIOR_BLEND_WINDOW
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
 from .outputs import photometric_settings, stale_reason, write_missing_previews, write_pass
+from .reference import PassMaps, PassRecord, Reference
+from .timing import Timer
 
 logger = logging.getLogger(__name__)
 
 
-@dataclass
-class NetworkMaps:
-    """One network run on a reference, at the map size ``[H, W]``: ``depth`` (0 = invalid),
-    ``normals`` ``[H, W, 3]``, ``confidence`` and the coarse learned visibility ``[S, h/4, w/4]``."""
-
-    depth: np.ndarray
-    normals: np.ndarray
-    confidence: np.ndarray
-    visibility: np.ndarray
-
-
-def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dict[str, float],
-                  dense_hints: np.ndarray | None = None) -> NetworkMaps | str:
-    """The network's maps of ``name`` with ``sources`` (its photometric pass), or the reason it could
-    not run (out of memory).
+def network_maps(ctx: StereoContext, name: str, sources: list[str], timer: Timer,
+                  dense_hints: np.ndarray | None = None) -> PassMaps | str:
+    """The network's maps of ``name`` with ``sources`` (its photometric pass: depth, normals,
+    confidence and the coarse visibility of each source, :class:`~colmap_pvs.stereo.reference.PassMaps`),
+    or the reason it could not run (out of memory); each step timed in ``timer``.
 
     ``dense_hints`` ``[H, W]`` (map size, 0 = none): depths that replace the SfM hints where they are
     set (the geometric pass's re-estimation, ``geom_reestimate``); SfM hints stay elsewhere.
     """
     cfg = ctx.config.photometric
     size = ctx.map_size(name)
-    t0 = time.perf_counter()
-    names = [name, *sources]
-    net_size = ctx.network_size(name)
-    futures = [ctx.images.future(n, cfg.max_image_size, net_size) for n in names]
-    images = np.stack([f.result() for f in futures])
-    guide = ctx.images.get(name, cfg.max_image_size, size) if net_size != size else None
-    Ks = np.stack([ctx.map_K(n, net_size) for n in names])
-    # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
-    poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
-    timings["load"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    w, h = net_size
-    ref = ctx.sparse.image_by_name(name)
-    sparse = image_sparse_depth(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
-    entry = ctx.selection.references[name]
-    drop_outlier_hints(sparse, entry.depth_range)
-    if dense_hints is not None:
-        if dense_hints.shape != (size[1], size[0]):
-            raise ShapeError(
-                f"dense_hints of {name!r} must be [{size[1]}, {size[0]}], got {dense_hints.shape}"
-            )
-        if net_size != size:  # nearest: a hint is a depth, never an average across an edge
-            dense_hints = resize_nearest(dense_hints, h, w)
-        sparse = np.where(dense_hints > 0, dense_hints, sparse).astype(np.float32)
-    timings["prior"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    with timer.step("load"):
+        names = [name, *sources]
+        net_size = ctx.network_size(name)
+        futures = [ctx.images.future(n, cfg.max_image_size, net_size) for n in names]
+        images = np.stack([f.result() for f in futures])
+        guide = ctx.images.get(name, cfg.max_image_size, size) if net_size != size else None
+        Ks = np.stack([ctx.map_K(n, net_size) for n in names])
+        # COLMAP's fusion reads map pixel (col, row) along K_s^-1 [col, row, 1]; see CONVENTIONS.md.
+        poses = np.stack([to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world) for n in names])
+    with timer.step("prior"):
+        w, h = net_size
+        ref = ctx.sparse.image_by_name(name)
+        sparse = image_sparse_depth(ctx.sparse, ref, Ks[0], h, w, ctx.id_order)
+        entry = ctx.selection.references[name]
+        drop_outlier_hints(sparse, entry.depth_range)
+        if dense_hints is not None:
+            if dense_hints.shape != (size[1], size[0]):
+                raise ShapeError(
+                    f"dense_hints of {name!r} must be [{size[1]}, {size[0]}], got {dense_hints.shape}"
+                )
+            if net_size != size:  # nearest: a hint is a depth, never an average across an edge
+                dense_hints = resize_nearest(dense_hints, h, w)
+            sparse = np.where(dense_hints > 0, dense_hints, sparse).astype(np.float32)
     try:
-        if ctx.device.type == "cpu":  # refuse up front what would not fit in memory
-            check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
-        depth, conf, vis, prior = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse,
-                                                 ctx.device)
+        with timer.step("network"):
+            if ctx.device.type == "cpu":  # refuse up front what would not fit in memory
+                check_memory_budget(h, w, len(sources) + 1, ctx.net.config)
+            depth, conf, vis, prior = estimate_depth(ctx.net, images, Ks, poses, entry.depth_range, sparse,
+                                                     ctx.device)
     except (RuntimeError, MemoryError) as exc:
         if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
             raise
@@ -95,61 +83,55 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timings: dic
         reason = f"out of memory at {w}x{h} with {len(sources) + 1} views; lower {lower}"
         logger.error("skipping %s: %s (%s)", name, reason, exc)
         return reason
-    timings["network"] = time.perf_counter() - t0
     conf = np.nan_to_num(conf, nan=0.0).astype(np.float32)
     if guide is not None:
-        t0 = time.perf_counter()
-        w, h = size
-        if net_size[0] * net_size[1] < w * h:  # up to the map size along the image's edges
-            depth = guided_upsample_depth(depth, guide)
-            conf = resize_bilinear(conf, h, w)
-        else:  # down: each map pixel takes the depth on its own ray, never an average across an edge
-            depth = sample_depth_down(depth, h, w)
-            conf = resize_area(conf, h, w)
-        timings["upsample"] = time.perf_counter() - t0
+        with timer.step("upsample"):
+            w, h = size
+            if net_size[0] * net_size[1] < w * h:  # up to the map size along the image's edges
+                depth = guided_upsample_depth(depth, guide)
+                conf = resize_bilinear(conf, h, w)
+            else:  # down: each map pixel takes the depth on its own ray, never an average across an edge
+                depth = sample_depth_down(depth, h, w)
+                conf = resize_area(conf, h, w)
     if prior is not None and (cfg.prior_blend_texture > 0 or cfg.prior_agreement_scale > 0):
-        t0 = time.perf_counter()
-        prior = upsample_prior(prior, net_size, size)
-        conf = conf * prior_agreement(depth, prior, cfg.prior_agreement_scale)
-        if cfg.prior_blend_texture > 0:
-            rgb = guide if guide is not None else images[0]
-            weight = texture_weight(rgb, PRIOR_BLEND_WINDOW, cfg.prior_blend_texture)
-            depth = blend_with_prior(depth, prior, weight)
-        timings["prior_blend"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    # the score as P(depth within the tolerance)
-    conf = ctx.calibration.apply("photometric", conf, np.isfinite(depth) & (depth > 0))
-    depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
-    timings["confidence"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    normals = depth_to_normals(depth, ctx.map_K(name, size))
-    depth[~np.any(normals != 0, axis=-1)] = 0.0
-    conf = np.where(depth > 0, conf, 0.0).astype(np.float32)  # 0 on invalid pixels
-    timings["normals"] = time.perf_counter() - t0
-    return NetworkMaps(depth, normals, conf, vis)
+        with timer.step("prior_blend"):
+            prior = upsample_prior(prior, net_size, size)
+            conf = conf * prior_agreement(depth, prior, cfg.prior_agreement_scale)
+            if cfg.prior_blend_texture > 0:
+                rgb = guide if guide is not None else images[0]
+                weight = texture_weight(rgb, PRIOR_BLEND_WINDOW, cfg.prior_blend_texture)
+                depth = blend_with_prior(depth, prior, weight)
+    with timer.step("confidence"):
+        # the score as P(depth within the tolerance)
+        conf = ctx.calibration.apply("photometric", conf, np.isfinite(depth) & (depth > 0))
+        depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
+    with timer.step("normals"):
+        normals = depth_to_normals(depth, ctx.map_K(name, size))
+        depth[~np.any(normals != 0, axis=-1)] = 0.0
+        conf = np.where(depth > 0, conf, 0.0).astype(np.float32)  # 0 on invalid pixels
+    return PassMaps(depth, conf, normals, visibility=vis)
 
 
 def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     """The photometric pass of reference ``name``: its network maps, unless current (module docstring)."""
     cfg, ws = ctx.config, ctx.workspace
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
+    timer = Timer()
     sources, reason = ctx.sources_of(name)
     if sources is None:
         return RefOutcome(name, "photometric", "skipped", reason)
     size = ctx.map_size(name)
     settings = photometric_settings(ctx, name, sources)
     why = stale_reason(ws, name, "photometric", settings, size, cfg.overwrite)
+    entry = ctx.selection.references[name]
     if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
-            write_missing_previews(ws, name, "photometric", ctx.selection.references[name].depth_range)
-        return RefOutcome(name, "photometric", "done", seconds=time.perf_counter() - start)
-    maps = network_maps(ctx, name, sources, timings)
+            write_missing_previews(ws, name, "photometric", entry.depth_range)
+        return RefOutcome(name, "photometric", "done", seconds=timer.elapsed())
+    maps = network_maps(ctx, name, sources, timer)
     if isinstance(maps, str):
         return RefOutcome(name, "photometric", "skipped", maps)
-    entry = ctx.selection.references[name]
-    extra = {"image_size": list(size), "sources": sources, "sources_from": ctx.sources_origin(name)}
-    ctx.submit_write(write_pass, ws, name, "photometric", maps.depth, maps.normals, maps.confidence,
-                     settings, extra, cfg.previews, entry.depth_range, timings, maps.visibility, sources)
-    return RefOutcome(name, "photometric", "computed", why, seconds=time.perf_counter() - start,
-                      timings=timings)
+    record = PassRecord(settings, {"image_size": list(size), "sources": sources,
+                                   "sources_from": ctx.sources_origin(name)})
+    ref = Reference.of(ws, name, sources, entry.depth_range).with_pass("photometric", maps, record)
+    ctx.submit_write(write_pass, ref, "photometric", previews=cfg.previews, timer=timer)
+    return RefOutcome(name, "photometric", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

@@ -50,6 +50,7 @@ from .config import CONFIG_FILENAME, StereoConfig
 from .context import RefOutcome, StereoResult, patch_match_note, prepare_stereo
 from .local import auxiliary_references, process_reference
 from .outputs import pass_summary, remove_filled
+from .timing import Timer, sum_steps
 
 logger = logging.getLogger(__name__)
 
@@ -201,7 +202,7 @@ class StereoWorker:
 
     def setup(self, passes: tuple[str, ...]) -> dict:
         """Check the workspace, :func:`prepare_stereo`, and return who we are plus the reference plan."""
-        start = time.perf_counter()
+        timer = Timer()
         check_workspace_access(self.config)
         self.ctx = ctx = prepare_stereo(self.config)
         sources: dict[str, list[str] | None] = {}
@@ -215,7 +216,7 @@ class StereoWorker:
             "host": socket.gethostname(),
             "pid": os.getpid(),
             "version": __version__,
-            "seconds": time.perf_counter() - start,
+            "seconds": timer.elapsed(),
             "references": list(ctx.references),
             "sources": sources,
             # Sources that are not references get the first pass too when a later pass reads them.
@@ -504,6 +505,7 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
     write_fusion_cfg(ws.fusion_cfg, done)
     result.seconds_per_image = wall / len(computed) if computed else 0.0
     result.seconds_per_task = sum(seconds) / len(seconds) if seconds else 0.0
+    sum_steps(outcomes.values(), into=result.timings)
     return result
 
 
@@ -517,7 +519,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     """
     ray = _import_ray()
     passes = stereo_passes(config)
-    wall = time.perf_counter()
+    wall = Timer()
     handlers = _signal_handlers()
     started = _connect(ray, config)
     driver = None
@@ -556,7 +558,7 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
                 remove_filled(ws, name)
         for stage in passes:
             logger.info("stereo %s", pass_summary(stage, outcomes.values()))
-        result = _result(ws, plan, passes, outcomes, time.perf_counter() - wall)
+        result = _result(ws, plan, passes, outcomes, wall.elapsed())
         result.retried = {f"{n}/{s}": k for (n, s), k in attempts.items()}
         result.workers = len(driver.info)
         result.nodes = sorted({i["host"] for i in driver.info.values()})
