@@ -71,6 +71,7 @@ from .io.files import make_temp_dir
 from .io.images import load_image
 from .io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
 from .io.ply import commit_cloud_pair, read_point_cloud, vis_path_of, write_cloud_pair
+from .io.sparse import image_indices
 from .io.workspace import (
     Workspace,
     fusion_inputs_sha256,
@@ -231,44 +232,6 @@ class _MapCache:
         while len(self._items) > self._size:
             self._items.popitem(last=False)
         return view
-
-
-def image_indices(sparse_dir: Path, model: SparseModel) -> dict[str, int]:
-    """``{name: index}`` as COLMAP's ``mvs::Model`` numbers images (``.vis`` files use it).
-
-    COLMAP (pycolmap 4.x) numbers the registered images in ascending image-id order. COLMAP <= 3.9
-    used the order of ``images.bin``; we warn when the two differ.
-    """
-    ids = sorted(model.images)
-    index = {model.images[i].name: k for k, i in enumerate(ids)}
-    bin_path = Path(sparse_dir) / "images.bin"
-    try:
-        order = _images_bin_order(bin_path) if bin_path.is_file() else None
-    except (OSError, ValueError):
-        order = None
-    if order is not None:
-        reg = [i for i in order if i in model.images]
-        if reg != ids:
-            logger.warning(
-                "%s lists images out of id order: COLMAP <= 3.9 tools will misread the .vis image indices",
-                bin_path,
-            )
-    return index
-
-
-def _images_bin_order(path: Path) -> list[int]:
-    """Image ids in the order they are stored in a COLMAP ``images.bin``."""
-    data = path.read_bytes()
-    n = int(np.frombuffer(data, "<u8", 1, 0)[0])
-    off, ids = 8, []
-    for _ in range(n):
-        ids.append(int(np.frombuffer(data, "<u4", 1, off)[0]))
-        off += 4 + 32 + 24 + 4
-        end = data.index(b"\0", off)
-        off = end + 1
-        n2d = int(np.frombuffer(data, "<u8", 1, off)[0])
-        off += 8 + 24 * n2d
-    return ids
 
 
 def _sources_for(ws: Workspace, model: SparseModel, names: list[str], num: int) -> dict[str, list[str]]:
