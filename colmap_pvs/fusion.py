@@ -51,10 +51,12 @@ COLMAP's layout (:mod:`colmap_pvs.io.ply`), both written atomically; COLMAP's
 
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -64,7 +66,9 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import save_config
+from .consistency import SourceMaps, backproject_pixels, match_points
 from .errors import ConfigError, MapFormatError, WorkspaceError
+from .geometry import rowmul
 from .io.cleanup import remove_orphan_temps
 from .io.colmap_tools import COLMAP_DEFAULTS, parse_colmap_options
 from .io.files import make_temp_dir
@@ -195,30 +199,92 @@ class FuseResult:
     seconds: float = 0.0
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- pvs fusion: the views
 
 
 @dataclass
-class _View:
-    """One image at map resolution: depth ``[h, w]``, camera normals ``[h, w, 3]``, rgb ``[h, w, 3]``."""
+class _View(SourceMaps):
+    """One image at map resolution: the maps checked (depth ``[h, w]`` float32, 0 = not fused; camera
+    normals ``[h, w, 3]`` float32; ``K``; ``cam_from_world`` ``[3, 4]``) and the colours ``[h, w, 3]``."""
 
-    depth: np.ndarray
-    normals_cam: np.ndarray
     rgb: np.ndarray
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
     checked: np.ndarray | None = None  # [h, w] bool: pixels the geometric pass already kept (completion)
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.depth.shape  # type: ignore[return-value]
 
+    @property
+    def R(self) -> np.ndarray:
+        return self.cam_from_world[:, :3]
 
-class _MapCache:
-    """LRU of loaded views (so memory stays bounded on large scenes)."""
+    @property
+    def t(self) -> np.ndarray:
+        return self.cam_from_world[:, 3]
 
-    def __init__(self, loader, size: int) -> None:
+
+def _load_view(config: FuseConfig, ws: Workspace, model: SparseModel, name: str) -> _View:
+    """The maps of ``name`` as fusion checks them: the depth of the pixels that may become points (finite,
+    with a normal, confident enough; on the completion, supported), its normals, its image resized to
+    the map, and on the completion the pixels that hold the depth the geometric pass checked.
+
+    Raises:
+        MapFormatError: a map unreadable or of another size than the depth map.
+    """
+    image = model.image_by_name(name)
+    cam = model.camera_of(image)
+    depth = read_depth_map(ws.depth_map_path(name, config.input_type))
+    h, w = depth.shape
+    K = fusion_intrinsics(cam.K, (cam.width, cam.height), (w, h))
+    if config.input_type == "filled":  # the completion has no normal map: the local plane fit's
+        normals = fit_normals(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32), K)
+    else:
+        normals = read_normal_map(ws.normal_map_path(name, config.input_type))
+    if normals.shape[:2] != (h, w):
+        raise MapFormatError(
+            f"normal map of {name!r} is {normals.shape[1]}x{normals.shape[0]} "
+            f"but its depth map is {w}x{h}"
+        )
+    depth = np.where(np.isfinite(depth) & (np.abs(normals).sum(axis=2) > 0), depth, 0.0).astype(
+        np.float32
+    )
+    conf_path = ws.confidence_map_path(name, config.input_type)
+    if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
+        conf_path = ws.confidence_map_path(name)
+    filled = config.input_type == "filled"  # its confidence 0 marks the unsupported pixels
+    if filled and not conf_path.is_file():
+        raise MapFormatError(f"the completion of {name!r} has no confidence map {str(conf_path)!r}")
+    if (config.min_confidence > 0 or filled) and conf_path.is_file():
+        conf = read_array(conf_path)
+        if conf.shape[:2] != (h, w):
+            raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
+        conf = conf.reshape(h, w)
+        depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
+    checked = None  # completed pixels that hold the depth the geometric map checked
+    geometric_path = ws.depth_map_path(name, "geometric")
+    if filled and geometric_path.is_file():
+        try:
+            geometric = read_depth_map(geometric_path)
+        except MapFormatError as exc:
+            geometric = None
+            logger.warning("fusion: %s; every completed pixel of %r needs %d agreeing views", exc, name,
+                           config.min_consistent_views)
+        if geometric is not None and geometric.shape == (h, w):
+            checked = (geometric > 0) & (np.abs(depth - geometric) <= config.max_depth_error * geometric)
+        elif geometric is not None:
+            logger.warning("fusion: the geometric map of %r is not %dx%d: every completed pixel needs "
+                           "%d agreeing views", name, w, h, config.min_consistent_views)
+    rgb = load_image(ws.image_path(name))
+    if rgb.shape[:2] != (h, w):
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    return _View(depth, normals.astype(np.float32), K, image.cam_from_world, rgb, checked)
+
+
+class _ViewCache:
+    """The views by name, loaded on first use and kept in an LRU of ``size`` (memory stays bounded on
+    large scenes)."""
+
+    def __init__(self, loader: Callable[[str], _View], size: int) -> None:
         self._loader = loader
         self._size = size
         self._items: OrderedDict[str, _View] = OrderedDict()
@@ -257,92 +323,58 @@ def _sources_for(ws: Workspace, model: SparseModel, names: list[str], num: int) 
     return out
 
 
-def _rowmul(points: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """``points @ M`` for ``[N, 3]`` points and a ``[3, 3]`` matrix.
+# --------------------------------------------------------------------------- pvs fusion: one reference
 
-    ``np.einsum`` instead of ``@``: BLAS gemm on ``[N, 3] x [3, 3]`` is ~10x slower here (threading
-    overhead on a shared CPU).
+
+@dataclass
+class _ReferencePoints:
+    """The points one reference contributes (:func:`_fuse_reference`).
+
+    Attributes:
+        xyz: ``[P, 3]`` float64 world points; normals: ``[P, 3]`` unit world normals; rgb: ``[P, 3]`` uint8.
+        per_source: per source ``(name, point_index [k], flat_source_pixel [k])`` for the ``k`` points it
+            agreed with.
     """
-    return np.einsum("ij,jk->ik", points, M)
 
+    xyz: np.ndarray
+    normals: np.ndarray
+    rgb: np.ndarray
+    per_source: list[tuple[str, np.ndarray, np.ndarray]]
 
-def _pixel_rays(rows: np.ndarray, cols: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame rays ``[M, 3]`` (z = 1) through map pixel centres ``(cols + 0.5, rows + 0.5)``."""
-    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    y = (rows + 0.5 - cy) / fy
-    x = (cols + 0.5 - cx - skew * y) / fx
-    return np.stack([x, y, np.ones_like(x)], axis=1)
-
-
-def _project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous pixel coordinates ``(u, v)`` of camera-frame points ``[M, 3]`` (z > 0 assumed)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = points[:, 0] / points[:, 2]
-        y = points[:, 1] / points[:, 2]
-    return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
+    def __len__(self) -> int:
+        return len(self.xyz)
 
 
 def _fuse_reference(
     config: FuseConfig, ref: _View, valid: np.ndarray, srcs: list[tuple[str, _View]]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[tuple[str, np.ndarray, np.ndarray]]]:
-    """Geometric consistency of one reference against its sources.
-
-    Args:
-        valid: ``[h, w]`` bool, the reference pixels to test.
-        srcs: ``(name, view)`` of the sources.
-
-    Returns:
-        ``(kept, xyz, normals, rgb, per_source)``: ``kept`` ``[P]`` flat indices (into the ``valid``
-        pixels, row-major) of the pixels that became points; world points ``[P, 3]`` float64; unit
-        world normals ``[P, 3]``; colours ``[P, 3]`` uint8; and per source ``(name, point_index [k],
-        flat_source_pixel [k])`` for the ``k`` kept points it agreed with.
-    """
+) -> _ReferencePoints:
+    """The pixels of ``ref`` (those ``valid`` ``[h, w]``) that enough of its sources ``srcs`` (``(name,
+    view)``) agree with (:func:`colmap_pvs.consistency.match_points`), as points averaged over the
+    reference pixel and the agreeing source pixels."""
     rows, cols = np.nonzero(valid)
     d = ref.depth[rows, cols].astype(np.float64)
-    x_ref = _pixel_rays(rows, cols, ref.K) * d[:, None]  # reference camera frame
+    x_ref = backproject_pixels(rows, cols, d, ref.K)  # reference camera frame
     sum_x = x_ref.copy()
-    sum_n = ref.normals_cam[rows, cols].astype(np.float64)
+    sum_n = ref.normals[rows, cols].astype(np.float64)
     sum_rgb = ref.rgb[rows, cols].astype(np.float64)
     count = np.zeros(len(d), dtype=np.int64)
-    u_ref, v_ref = cols + 0.5, rows + 0.5
     per_source = []
     for src_name, src in srcs:
-        sh, sw = src.shape
-        A = src.R @ ref.R.T  # reference camera -> source camera rotation
-        a = src.t - A @ ref.t
-        xs = _rowmul(x_ref, A.T) + a
-        us, vs = _project(xs, src.K)
-        ok = (xs[:, 2] > 0) & (us >= 0) & (us < sw) & (vs >= 0) & (vs < sh)  # NaN compares False
-        idx = np.flatnonzero(ok)
-        cs = us[idx].astype(np.int64)
-        rs = vs[idx].astype(np.int64)
-        ds = src.depth[rs, cs]
-        has = ds > 0
-        idx, cs, rs, ds = idx[has], cs[has], rs[has], ds[has].astype(np.float64)
-        # Source pixel back-projected, expressed in the reference camera frame.
-        y_ref = _rowmul(_pixel_rays(rs, cs, src.K) * ds[:, None] - a, A)
-        ur, vr = _project(y_ref, ref.K)
-        zr = y_ref[:, 2]
-        dref = d[idx]
-        with np.errstate(invalid="ignore"):
-            good = (
-                (zr > 0)
-                & (np.hypot(ur - u_ref[idx], vr - v_ref[idx]) < config.max_reproj_error)
-                & (np.abs(zr - dref) < config.max_depth_error * dref)
-            )
-        idx, rs, cs = idx[good], rs[good], cs[good]
+        match = match_points(x_ref, rows, cols, ref.K, ref.cam_from_world, src,
+                             max_reproj_error=config.max_reproj_error, max_depth_error=config.max_depth_error)
+        idx, rs, cs = match.index, match.rows, match.cols
         count[idx] += 1
-        sum_x[idx] += y_ref[good]
-        sum_n[idx] += _rowmul(src.normals_cam[rs, cs].astype(np.float64), A)
+        sum_x[idx] += match.points
+        sum_n[idx] += rowmul(src.normals[rs, cs].astype(np.float64), match.rotation)
         sum_rgb[idx] += src.rgb[rs, cs]
-        per_source.append((src_name, idx, rs * sw + cs))
+        per_source.append((src_name, idx, rs * src.shape[1] + cs))
     need = np.full(len(d), config.min_consistent_views)
     if ref.checked is not None:  # the geometric pass's own check counts as one agreeing view
         need = np.maximum(need - ref.checked[rows, cols], 0)
     keep = count >= need
     denom = (count[keep] + 1).astype(np.float64)[:, None]
-    xyz = _rowmul(sum_x[keep] / denom - ref.t, ref.R)  # world
-    nrm = _rowmul(sum_n[keep], ref.R)
+    xyz = rowmul(sum_x[keep] / denom - ref.t, ref.R)  # world
+    nrm = rowmul(sum_n[keep], ref.R)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     rgb = np.clip(np.round(sum_rgb[keep] / denom), 0, 255).astype(np.uint8)
     # Re-index the per-source agreements to the kept points.
@@ -351,131 +383,112 @@ def _fuse_reference(
     for src_name, idx, flat in per_source:
         sel = keep[idx]
         out_sources.append((src_name, new_index[idx[sel]], flat[sel]))
-    return np.flatnonzero(keep), xyz, nrm, rgb, out_sources
+    return _ReferencePoints(xyz, nrm, rgb, out_sources)
 
 
-# --------------------------------------------------------------------------- pvs fusion
+# --------------------------------------------------------------------------- pvs fusion: the cloud
+
+
+class _UsedPixels:
+    """Per view a packed bit mask of the pixels already fused as agreeing source pixels (``deduplicate``):
+    they are not fused again when that view is the reference."""
+
+    def __init__(self) -> None:
+        self._masks: dict[str, np.ndarray] = {}
+
+    def unused(self, name: str, valid: np.ndarray) -> np.ndarray:
+        """``valid`` ``[h, w]`` less the used pixels of ``name``."""
+        if name in self._masks:
+            h, w = valid.shape
+            valid &= ~np.unpackbits(self._masks[name], count=h * w).reshape(h, w).astype(bool)
+        return valid
+
+    def mark(self, name: str, shape: tuple[int, int], flat: np.ndarray) -> None:
+        """Mark the pixels ``flat`` (row-major indices) of ``name`` (a map of ``shape``) used."""
+        sh, sw = shape
+        mask = (
+            np.unpackbits(self._masks[name], count=sh * sw).astype(bool)
+            if name in self._masks
+            else np.zeros(sh * sw, dtype=bool)
+        )
+        mask[flat] = True
+        self._masks[name] = np.packbits(mask)
+
+
+class _Cloud:
+    """The fused points in chunks, one per reference, with their visibility as COLMAP's ``.vis``
+    numbers the images (``index_of``)."""
+
+    def __init__(self, index_of: dict[str, int]) -> None:
+        self._index_of = index_of
+        self._xyz: list[np.ndarray] = []
+        self._normals: list[np.ndarray] = []
+        self._rgb: list[np.ndarray] = []
+        self._counts: list[np.ndarray] = []
+        self._vis: list[np.ndarray] = []
+
+    def add(self, name: str, points: _ReferencePoints) -> None:
+        """The points of reference ``name``, seen by it and by the sources that agreed with each."""
+        self._xyz.append(points.xyz.astype(np.float32))
+        self._normals.append(points.normals.astype(np.float32))
+        self._rgb.append(points.rgb)
+        # Visibility as a dense [P, 1 + n_sources] table of image indices (-1 = not visible).
+        vis = np.full((len(points), 1 + len(points.per_source)), -1, dtype=np.int64)
+        vis[:, 0] = self._index_of[name]
+        for k, (src_name, point_idx, _) in enumerate(points.per_source):
+            vis[point_idx, k + 1] = self._index_of[src_name]
+        self._counts.append((vis >= 0).sum(axis=1))
+        self._vis.append(vis[vis >= 0])
+
+    def __len__(self) -> int:
+        return sum(len(x) for x in self._xyz)
+
+    def write(self, path: Path) -> None:
+        """The PLY and its ``.vis``, together or not at all."""
+        counts = np.concatenate(self._counts)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        write_cloud_pair(path, np.concatenate(self._xyz), np.concatenate(self._normals),
+                         np.concatenate(self._rgb), offsets, np.concatenate(self._vis))
 
 
 def _fuse_pvs(config: FuseConfig, ws: Workspace, model: SparseModel, names: list[str], result: FuseResult):
-    names_set = set(names)
+    """Our fusion: per reference, its views loaded (LRU), its unused valid pixels checked against its
+    sources, the agreeing ones added to the cloud and their source pixels marked used; then the PLY and
+    ``.vis`` written. A reference or source whose maps are unusable is skipped with a warning."""
     sources = _sources_for(ws, model, names, config.num_sources)
-    idx_of = image_indices(ws.sparse_dir, model)
-
-    def load(name: str) -> _View:
-        image = model.image_by_name(name)
-        cam = model.camera_of(image)
-        depth = read_depth_map(ws.depth_map_path(name, config.input_type))
-        h, w = depth.shape
-        K = fusion_intrinsics(cam.K, (cam.width, cam.height), (w, h))
-        if config.input_type == "filled":  # the completion has no normal map: the local plane fit's
-            normals = fit_normals(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32), K)
-        else:
-            normals = read_normal_map(ws.normal_map_path(name, config.input_type))
-        if normals.shape[:2] != (h, w):
-            raise MapFormatError(
-                f"normal map of {name!r} is {normals.shape[1]}x{normals.shape[0]} "
-                f"but its depth map is {w}x{h}"
-            )
-        depth = np.where(np.isfinite(depth) & (np.abs(normals).sum(axis=2) > 0), depth, 0.0).astype(
-            np.float32
-        )
-        conf_path = ws.confidence_map_path(name, config.input_type)
-        if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
-            conf_path = ws.confidence_map_path(name)
-        filled = config.input_type == "filled"  # its confidence 0 marks the unsupported pixels
-        if filled and not conf_path.is_file():
-            raise MapFormatError(f"the completion of {name!r} has no confidence map {str(conf_path)!r}")
-        if (config.min_confidence > 0 or filled) and conf_path.is_file():
-            conf = read_array(conf_path)
-            if conf.shape[:2] != (h, w):
-                raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
-            conf = conf.reshape(h, w)
-            depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
-        checked = None  # completed pixels that hold the depth the geometric map checked
-        geometric_path = ws.depth_map_path(name, "geometric")
-        if filled and geometric_path.is_file():
-            try:
-                geometric = read_depth_map(geometric_path)
-            except MapFormatError as exc:
-                geometric = None
-                logger.warning("fusion: %s; every completed pixel of %r needs %d agreeing views", exc, name,
-                               config.min_consistent_views)
-            if geometric is not None and geometric.shape == (h, w):
-                checked = (geometric > 0) & (np.abs(depth - geometric) <= config.max_depth_error * geometric)
-            elif geometric is not None:
-                logger.warning("fusion: the geometric map of %r is not %dx%d: every completed pixel needs "
-                               "%d agreeing views", name, w, h, config.min_consistent_views)
-        rgb = load_image(ws.image_path(name))
-        if rgb.shape[:2] != (h, w):
-            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        return _View(depth, normals.astype(np.float32), rgb, K, image.R, image.t, checked)
-
-    cache = _MapCache(load, config.cache_size)
-    used: dict[str, np.ndarray] = {}  # packed bit masks of already-fused pixels (deduplicate)
-    chunks_xyz, chunks_n, chunks_rgb, chunks_cnt, chunks_vis = [], [], [], [], []
+    views = _ViewCache(functools.partial(_load_view, config, ws, model), config.cache_size)
+    used = _UsedPixels()
+    cloud = _Cloud(image_indices(ws.sparse_dir, model))
     for name in tqdm(names, desc="fuse", unit="image"):
         try:
-            ref = cache.get(name)
+            ref = views.get(name)
         except (MapFormatError, WorkspaceError) as exc:
             logger.warning("fusion: skipping %s: %s", name, exc)
             result.skipped[name] = str(exc)
             continue
-        h, w = ref.shape
-        valid = ref.depth > 0
-        if name in used:
-            valid &= ~np.unpackbits(used[name], count=h * w).reshape(h, w).astype(bool)
         srcs = []
         for src_name in sources.get(name, []):
-            if src_name not in names_set or src_name in result.skipped:
+            if src_name in result.skipped:
                 continue
             try:
-                srcs.append((src_name, cache.get(src_name)))
+                srcs.append((src_name, views.get(src_name)))
             except (MapFormatError, WorkspaceError) as exc:
                 logger.warning("fusion: source %s unusable: %s", src_name, exc)
-        kept, xyz, nrm, rgb, per_source = _fuse_reference(config, ref, valid, srcs)
-        n_keep = len(kept)
-        result.points_per_image[name] = n_keep
-        if n_keep == 0:
+        points = _fuse_reference(config, ref, used.unused(name, ref.depth > 0), srcs)
+        result.points_per_image[name] = len(points)
+        if not len(points):
             continue
-        chunks_xyz.append(xyz.astype(np.float32))
-        chunks_n.append(nrm.astype(np.float32))
-        chunks_rgb.append(rgb)
-        # Visibility as a dense [P, 1 + n_sources] table of image indices (-1 = not visible).
-        vis = np.full((n_keep, 1 + len(per_source)), -1, dtype=np.int64)
-        vis[:, 0] = idx_of[name]
-        views = dict(srcs)
-        for k, (src_name, point_idx, flat) in enumerate(per_source):
-            vis[point_idx, k + 1] = idx_of[src_name]
-            if config.deduplicate and flat.size:
-                sh, sw = views[src_name].shape
-                mask = (
-                    np.unpackbits(used[src_name], count=sh * sw).astype(bool)
-                    if src_name in used
-                    else np.zeros(sh * sw, dtype=bool)
-                )
-                mask[flat] = True
-                used[src_name] = np.packbits(mask)
-        chunks_cnt.append((vis >= 0).sum(axis=1))
-        chunks_vis.append(vis[vis >= 0])
-    if chunks_xyz:
-        xyz = np.concatenate(chunks_xyz)
-        normals = np.concatenate(chunks_n)
-        rgb = np.concatenate(chunks_rgb)
-        counts = np.concatenate(chunks_cnt)
-        vis_idx = np.concatenate(chunks_vis)
-    else:
-        xyz = np.zeros((0, 3), np.float32)
-        normals = np.zeros((0, 3), np.float32)
-        rgb = np.zeros((0, 3), np.uint8)
-        counts = np.zeros(0, np.int64)
-        vis_idx = np.zeros(0, np.int64)
-    if not len(xyz):  # before anything is written or set aside: an existing cloud stays as it was
+        cloud.add(name, points)
+        if config.deduplicate:
+            shapes = {src_name: src.shape for src_name, src in srcs}
+            for src_name, _, flat in points.per_source:
+                if flat.size:
+                    used.mark(src_name, shapes[src_name], flat)
+    if not len(cloud):  # before anything is written or set aside: an existing cloud stays as it was
         raise _no_points_error(config, ws, names, result)
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     _set_aside_foreign_cloud(result.output_path)
-    write_cloud_pair(result.output_path, xyz, normals, rgb, offsets, vis_idx)  # together or not at all
-    result.num_points = int(len(xyz))
+    cloud.write(result.output_path)
+    result.num_points = len(cloud)
 
 
 # --------------------------------------------------------------------------- colmap fusion
