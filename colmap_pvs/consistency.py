@@ -1,4 +1,4 @@
-"""Multi-view geometric consistency of depth maps: the check behind the ``stereo`` geometric pass and ``fuse``.
+"""Multi-view geometric consistency of depth maps: the checks of the ``stereo`` geometric pass and ``fuse``.
 
 A reference pixel with depth ``d`` is back-projected, projected into a source view, and the source
 map's depth at the pixel it lands in is back-projected from that pixel's centre and projected back

@@ -18,6 +18,8 @@ Two methods:
     visibility is ``r`` plus those sources. With ``deduplicate`` the source pixels that
     agreed are marked as used and are not fused again when that source is the reference
     (COLMAP-like; otherwise every surface patch is emitted once per view that sees it).
+    The check is :func:`colmap_pvs.consistency.match_points` (why it is not the geometric pass's
+    :func:`~colmap_pvs.consistency.check_consistency`: :mod:`colmap_pvs.consistency`).
 
     Memory: one reference plus an LRU of ``cache_size`` source maps at their stored
     resolution; per image only a packed bit mask of used pixels is kept.
@@ -34,9 +36,8 @@ completed depth, are never fused; a pixel that holds its geometric map's depth, 
 ``max_depth_error``, counts that check as one agreeing view). ``auto`` (the default) is ``geometric``
 for ``colmap``, and for
 ``pvs`` ``filled`` where every listed image with geometric maps has a completion (else ``geometric``,
-e.g. maps from COLMAP's ``patch_match_stereo`` or a run without the completion). On indoor video
-(hololens-dev) the completion fuses to F1 74.8 at 5 cm against 73.0 from the geometric maps, and around
-an object (colmap-statue) it adds no background the geometric maps lack (``benchmarks/RESULTS.md``).
+e.g. maps from COLMAP's ``patch_match_stereo`` or a run without the completion); why the completion by
+default: ``benchmarks/RESULTS.md``.
 
 Pixel convention: maps in ``stereo/`` hold, at pixel ``(col, row)``, the depth along COLMAP's
 integer-centre ray; ours is the same ray written with :func:`colmap_pvs.io.maps.fusion_intrinsics`

@@ -25,8 +25,8 @@ def affine_row(m: np.ndarray, b: float, x: tuple[np.ndarray, np.ndarray, np.ndar
 def rowmul(points: np.ndarray, M: np.ndarray) -> np.ndarray:
     """``points @ M`` for ``[N, 3]`` points and a ``[3, 3]`` matrix.
 
-    ``np.einsum`` instead of ``@``: BLAS gemm on ``[N, 3] x [3, 3]`` is ~10x slower here (threading
-    overhead on a shared CPU).
+    ``np.einsum`` instead of ``@``: BLAS gemm on ``[N, 3] x [3, 3]`` is much slower (its threads stall
+    on thin matrices, as in :func:`affine_row`).
     """
     return np.einsum("ij,jk->ik", points, M)
 
