@@ -29,10 +29,9 @@ import real_depth as rd
 from cloud_benchmark import gt_cloud, gt_views, observed_mask, project, read_points
 from scipy.spatial import cKDTree
 
-from colmap_pvs.fusion import image_indices
 from colmap_pvs.io.maps import read_array, read_depth_map
 from colmap_pvs.io.ply import read_visibility, vis_path_of
-from colmap_pvs.io.sparse import read_sparse_model
+from colmap_pvs.io.sparse import image_indices, read_sparse_model
 
 TOLERANCE = 0.05
 MISS_KINDS = ("seen by no reference", "no completed depth", "completion wrong", "completion right",

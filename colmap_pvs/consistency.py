@@ -1,4 +1,4 @@
-"""Multi-view geometric consistency of depth maps: the check behind the ``stereo`` geometric pass.
+"""Multi-view geometric consistency of depth maps: the checks of the ``stereo`` geometric pass and ``fuse``.
 
 A reference pixel with depth ``d`` is back-projected, projected into a source view, and the source
 map's depth at the pixel it lands in is back-projected from that pixel's centre and projected back
@@ -12,6 +12,23 @@ filter). The pixel *agrees* with that source when
 
 and a source is *checked* for that pixel only where the network's learned visibility of that
 source (upsampled to the map) is at least ``min_visibility``. Conventions: ``docs/CONVENTIONS.md``.
+
+Two forms of the check live here, on the same source maps (:class:`SourceMaps`):
+
+- :func:`check_consistency`, the geometric pass's: dense per-pixel measurements ``[S, H, W]`` of a
+  whole map against all its sources (errors, reprojected depth, parallax, triangulation angle,
+  normal angle, learned visibility), limits inclusive (``<=``, relative depth error ``|z' - d| / d``).
+- :func:`match_points`, fusion's (``colmap_pvs.fusion``): a list of reference points against one
+  source, returning for each agreeing point the source pixel it landed in (whose normal and colour
+  fusion averages, which deduplication marks used, which the ``.vis`` lists) and that pixel
+  back-projected (the 3D point averaged); no normal or visibility test, limits strict (``<``,
+  ``|z' - d| < max_depth_error d``).
+
+They stay two functions because their results differ in kind (dense maps vs matched pixels and
+points, which the dense form would cost fusion memory and time to produce) and because their float
+arithmetic differs (inverse-``K`` rows through :func:`~colmap_pvs.geometry.affine_row` vs pixel rays
+and row products): merging them would move either the geometric maps or the fused cloud by their last
+bits, and both must stay byte-identical to earlier releases.
 """
 
 from __future__ import annotations
@@ -21,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ShapeError
-from .geometry import affine_row, pixel_centers
+from .geometry import affine_row, pixel_centers, rowmul
 
 
 @dataclass
@@ -213,3 +230,104 @@ def check_consistency(
         for s, src in enumerate(sources):
             one(s, src)
     return ConsistencyResult(agree, checked, reproj, derr, zrep, parallax, angle)
+
+
+# --------------------------------------------------------------------------- fusion's point check
+
+
+@dataclass
+class PointMatches:
+    """The reference points that agree with one source (:func:`match_points`).
+
+    Attributes:
+        index: ``[k]`` int64 positions of the agreeing points in the points checked.
+        rows, cols: ``[k]`` int64 the source pixel each of them landed in.
+        points: ``[k, 3]`` float64 that source pixel back-projected with its own depth, in the
+            reference camera frame.
+        rotation: ``[3, 3]`` reference camera -> source camera (rotates source normals home as
+            ``normals @ rotation``).
+    """
+
+    index: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    points: np.ndarray
+    rotation: np.ndarray
+
+
+def _pixel_rays(rows: np.ndarray, cols: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame rays ``[M, 3]`` (z = 1) through map pixel centres ``(cols + 0.5, rows + 0.5)``."""
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    y = (rows + 0.5 - cy) / fy
+    x = (cols + 0.5 - cx - skew * y) / fx
+    return np.stack([x, y, np.ones_like(x)], axis=1)
+
+
+def _project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel coordinates ``(u, v)`` of camera-frame points ``[M, 3]`` (z > 0 assumed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = points[:, 0] / points[:, 2]
+        y = points[:, 1] / points[:, 2]
+    return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
+
+
+def backproject_pixels(rows: np.ndarray, cols: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``[M, 3]`` float64 of map pixels ``(rows, cols)`` ``[M]`` with depths
+    ``depth`` ``[M]`` float64 (the points :func:`match_points` checks)."""
+    return _pixel_rays(rows, cols, K) * depth[:, None]
+
+
+def match_points(
+    points: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    source: SourceMaps,
+    *,
+    max_reproj_error: float,
+    max_depth_error: float,
+) -> PointMatches:
+    """Forward-backward check of reference points against one source map (fusion's form; see the
+    module's docstring for how it differs from :func:`check_consistency`).
+
+    Each point is projected into the source, the source's depth at the pixel it lands in is
+    back-projected from that pixel's centre and brought back into the reference; the point agrees
+    when that lands in front of the reference within ``max_reproj_error`` pixels of its own pixel
+    centre and its depth differs by less than ``max_depth_error`` times the point's.
+
+    Args:
+        points: ``[P, 3]`` float64 reference camera frame (:func:`backproject_pixels` of ``rows``,
+            ``cols``); their z is their depth.
+        rows, cols: ``[P]`` int the reference pixels of the points.
+        K: ``[3, 3]`` reference intrinsics; cam_from_world: ``[3|4, 4]`` float64 reference pose.
+        source: the source's depth ``[h, w]`` (0 = none), ``K`` and ``cam_from_world`` (its normals
+            are not used).
+    """
+    R_ref, t_ref = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    R_src, t_src = source.cam_from_world[:3, :3], source.cam_from_world[:3, 3]
+    sh, sw = source.depth.shape
+    d = points[:, 2]
+    A = R_src @ R_ref.T  # reference camera -> source camera rotation
+    a = t_src - A @ t_ref
+    xs = rowmul(points, A.T) + a
+    us, vs = _project(xs, source.K)
+    ok = (xs[:, 2] > 0) & (us >= 0) & (us < sw) & (vs >= 0) & (vs < sh)  # NaN compares False
+    idx = np.flatnonzero(ok)
+    cs = us[idx].astype(np.int64)
+    rs = vs[idx].astype(np.int64)
+    ds = source.depth[rs, cs]
+    has = ds > 0
+    idx, cs, rs, ds = idx[has], cs[has], rs[has], ds[has].astype(np.float64)
+    # Source pixel back-projected, expressed in the reference camera frame.
+    y_ref = rowmul(_pixel_rays(rs, cs, source.K) * ds[:, None] - a, A)
+    ur, vr = _project(y_ref, K)
+    zr = y_ref[:, 2]
+    dref = d[idx]
+    with np.errstate(invalid="ignore"):
+        good = (
+            (zr > 0)
+            & (np.hypot(ur - (cols[idx] + 0.5), vr - (rows[idx] + 0.5)) < max_reproj_error)
+            & (np.abs(zr - dref) < max_depth_error * dref)
+        )
+    return PointMatches(idx[good], rs[good], cs[good], y_ref[good], A)

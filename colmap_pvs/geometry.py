@@ -22,6 +22,15 @@ def affine_row(m: np.ndarray, b: float, x: tuple[np.ndarray, np.ndarray, np.ndar
     return m[0] * x[0] + m[1] * x[1] + m[2] * x[2] + b
 
 
+def rowmul(points: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``points @ M`` for ``[N, 3]`` points and a ``[3, 3]`` matrix.
+
+    ``np.einsum`` instead of ``@``: BLAS gemm on ``[N, 3] x [3, 3]`` is much slower (its threads stall
+    on thin matrices, as in :func:`affine_row`).
+    """
+    return np.einsum("ij,jk->ik", points, M)
+
+
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """``K`` of an image resized by ``(sx, sy)`` (new size = old size * s), exact for our pixel convention."""
     S = np.diag([sx, sy, 1.0])

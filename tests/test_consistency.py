@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from colmap_pvs.consistency import SourceMaps, check_consistency
+from colmap_pvs.consistency import SourceMaps, backproject_pixels, check_consistency, match_points
 
 
 @pytest.fixture(scope="module")
@@ -352,3 +352,44 @@ def test_a_source_map_one_pixel_wide():
     first[:, 0] = True
     np.testing.assert_array_equal(res.checked[0], first)
     np.testing.assert_array_equal(res.agree[0], first)
+
+
+def test_fusions_point_check_is_the_geometric_check_on_exact_maps(exact):
+    """``match_points`` (fusion's form) and ``check_consistency`` (the geometric pass's) decide alike on
+    exact maps: the same pixels agree (but for a few on the limits, where one form is strict and the
+    other inclusive), the same source depths come home, and a block 5 % too deep agrees with neither."""
+    ref, src = exact[0], exact[1]
+    for depth in (ref.depth, np.where(np.arange(ref.depth.shape[1]) < 80, ref.depth * np.float32(1.05),
+                                      ref.depth).astype(np.float32)):
+        rows, cols = np.nonzero(depth > 0)
+        points = backproject_pixels(rows, cols, depth[rows, cols].astype(np.float64), ref.K)
+        match = match_points(points, rows, cols, ref.K, ref.cam_from_world, src,
+                             max_reproj_error=1.0, max_depth_error=0.01)
+        dense = check_consistency(depth, None, ref.K, ref.cam_from_world, [src])
+        agree = np.zeros_like(dense.agree[0])
+        agree[rows[match.index], cols[match.index]] = True
+        assert agree.sum() > 1000 and (agree != dense.agree[0]).sum() <= 0.001 * agree.sum()
+        both = dense.agree[0][rows[match.index], cols[match.index]]
+        np.testing.assert_allclose(match.points[both, 2],
+                                   dense.reprojected_depth[0][rows[match.index], cols[match.index]][both],
+                                   rtol=1e-6)
+        assert (src.depth[match.rows, match.cols] > 0).all()
+    assert not agree[:, :80].any()
+
+
+def test_fusions_point_check_limits_are_strict():
+    """``match_points``'s limits are "less than" (COLMAP-like fusion): the plane of
+    ``test_the_error_limits_are_inclusive``, whose errors are exactly 0.25 px and 6.25 %, agrees only
+    with limits above both."""
+    K = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    src_T = np.hstack([np.eye(3), [[4.78125], [0.0], [0.0]]])
+    src = SourceMaps(np.full((8, 16), 2.125, np.float32), None, K, src_T)
+    rows, cols = np.nonzero(np.ones((8, 8), bool))
+    points = backproject_pixels(rows, cols, np.full(64, 2.0), K)
+
+    def agreeing(reproj, depth):
+        return len(match_points(points, rows, cols, K, np.eye(4)[:3], src, max_reproj_error=reproj,
+                                max_depth_error=depth).index)
+
+    assert agreeing(0.2501, 0.0626) == 64
+    assert agreeing(0.25, 0.0626) == agreeing(0.2501, 0.0625) == 0

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from colmap_pvs.errors import ConfigError, WorkspaceError
-from colmap_pvs.fusion import FuseConfig, fuse, image_indices, parse_colmap_options
+from colmap_pvs.fusion import FuseConfig, fuse, parse_colmap_options
 from colmap_pvs.io import read_depth_map, read_sparse_model, write_depth_map, write_normal_map
 from colmap_pvs.io.maps import fusion_intrinsics, write_array
 from colmap_pvs.io.ply import (
@@ -26,6 +26,7 @@ from colmap_pvs.io.ply import (
     write_point_cloud,
     write_visibility,
 )
+from colmap_pvs.io.sparse import image_indices
 from colmap_pvs.stereo.config import FORMAT_VERSIONS
 
 

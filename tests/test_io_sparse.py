@@ -11,6 +11,7 @@ import pytest
 
 from colmap_pvs.errors import UnsupportedCameraError, WorkspaceError
 from colmap_pvs.io import read_sparse_model, write_sparse_model
+from colmap_pvs.io.sparse import image_indices, images_bin_order
 from colmap_pvs.types import Camera, Image, Points3D, SparseModel
 
 
@@ -197,3 +198,31 @@ def test_distorted_cameras_are_one_warning(
     n = len(images)
     assert len(warnings) == 1 and f"{n} of {n} camera(s)" in warnings[0].getMessage()
     assert len([r for r in caplog.records if r.levelname == "DEBUG" and "distortion" in r.getMessage()]) == n
+
+
+def test_images_bin_order_is_the_files_order(analytic_scene: dict, tmp_path: Path, caplog) -> None:
+    """``images.bin`` records stored out of id order (as COLMAP <= 3.9 numbered them in ``.vis`` files)
+    are read in the file's order and warned about; a cut-short file reads as unknown, silently."""
+    model = read_sparse_model(analytic_scene["root"] / "sparse")
+    write_sparse_model(model, tmp_path / "sparse")
+    path = tmp_path / "sparse" / "images.bin"
+    data = path.read_bytes()
+    records, offset = [], 8
+    while offset < len(data):  # id, qvec, tvec, camera id (64 bytes), name, 2D points
+        end = data.index(b"\0", offset + 64) + 1
+        size = end + 8 + 24 * int(np.frombuffer(data, "<u8", 1, end)[0]) - offset
+        records.append(data[offset : offset + size])
+        offset += size
+    ids = sorted(model.images)
+    expected = {model.images[i].name: k for k, i in enumerate(ids)}
+    assert images_bin_order(path) == ids
+    with caplog.at_level("WARNING", logger="colmap_pvs"):
+        assert image_indices(tmp_path / "sparse", model) == expected
+    assert not caplog.records
+    path.write_bytes(data[:8] + b"".join(reversed(records)))
+    assert images_bin_order(path) == ids[::-1]
+    with caplog.at_level("WARNING", logger="colmap_pvs"):
+        assert image_indices(tmp_path / "sparse", model) == expected  # the index stays by id
+    assert "out of id order" in caplog.text
+    path.write_bytes(data[:-3])
+    assert images_bin_order(path) is None

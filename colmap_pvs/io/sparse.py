@@ -23,7 +23,10 @@ from .files import make_temp_dir
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["read_sparse_model", "write_sparse_model", "find_model_files", "MODEL_FILE_STEMS"]
+__all__ = [
+    "read_sparse_model", "write_sparse_model", "find_model_files", "image_indices", "images_bin_order",
+    "MODEL_FILE_STEMS",
+]
 
 MODEL_FILE_STEMS = ("cameras", "images", "points3D")
 # Files that pycolmap >= 3.12 writes next to the three classic ones.
@@ -196,6 +199,15 @@ def _walk_records(data: bytes, record_size: Callable[[int], int]) -> str | None:
     return None
 
 
+def _image_record_size(data: bytes, offset: int) -> int:
+    """Bytes of the ``images.bin`` record at ``offset`` (id, quaternion, translation, camera id, name,
+    2D points), -1 where it is cut short."""
+    name_end = data.find(b"\0", offset + 64)
+    if name_end < 0 or name_end + 9 > len(data):
+        return -1
+    return name_end + 9 - offset + 24 * struct.unpack_from("<Q", data, name_end + 1)[0]
+
+
 def _check_binary_model(path: Path) -> None:
     """Validate the record structure of a binary model before pycolmap reads it.
 
@@ -209,18 +221,12 @@ def _check_binary_model(path: Path) -> None:
         n_params = _num_camera_params(struct.unpack_from("<i", data, offset + 4)[0])
         return 24 + 8 * n_params if n_params >= 0 else -1
 
-    def image_size(data: bytes, offset: int) -> int:
-        name_end = data.find(b"\0", offset + 64)
-        if name_end < 0 or name_end + 9 > len(data):
-            return -1
-        return name_end + 9 - offset + 24 * struct.unpack_from("<Q", data, name_end + 1)[0]
-
     def point_size(data: bytes, offset: int) -> int:
         if offset + 51 > len(data):
             return -1
         return 51 + 8 * struct.unpack_from("<Q", data, offset + 43)[0]
 
-    for stem, size_fn in (("cameras", camera_size), ("images", image_size), ("points3D", point_size)):
+    for stem, size_fn in (("cameras", camera_size), ("images", _image_record_size), ("points3D", point_size)):
         file = path / f"{stem}.bin"
         data = file.read_bytes()
         problem = _walk_records(data, lambda offset, d=data, f=size_fn: f(d, offset))
@@ -300,6 +306,48 @@ def read_sparse_model(
         points=points,
         image_ids_by_name={im.name: im.image_id for im in images.values()},
     )
+
+
+def images_bin_order(path: str | os.PathLike) -> list[int] | None:
+    """Image ids in the order a binary ``images.bin`` stores them; ``None`` where the file cannot be
+    read or is corrupt.
+
+    Read by hand: pycolmap's ``Reconstruction`` keeps its images in a map keyed by id and does not
+    tell the order of the file, which COLMAP <= 3.9 used to number images (see :func:`image_indices`).
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return None
+    ids: list[int] = []
+
+    def record_size(offset: int) -> int:
+        size = _image_record_size(data, offset)
+        if size >= 0:
+            ids.append(struct.unpack_from("<I", data, offset)[0])
+        return size
+
+    return None if _walk_records(data, record_size) else ids
+
+
+def image_indices(sparse_dir: str | os.PathLike, model: SparseModel) -> dict[str, int]:
+    """``{name: index}`` as COLMAP's ``mvs::Model`` numbers images (``.vis`` files use it).
+
+    COLMAP (pycolmap 4.x) numbers the registered images in ascending image-id order. COLMAP <= 3.9
+    used the order of ``images.bin``; we warn when the two differ.
+    """
+    ids = sorted(model.images)
+    index = {model.images[i].name: k for k, i in enumerate(ids)}
+    bin_path = Path(sparse_dir) / "images.bin"
+    order = images_bin_order(bin_path) if bin_path.is_file() else None
+    if order is not None:
+        reg = [i for i in order if i in model.images]
+        if reg != ids:
+            logger.warning(
+                "%s lists images out of id order: COLMAP <= 3.9 tools will misread the .vis image indices",
+                bin_path,
+            )
+    return index
 
 
 # --------------------------------------------------------------------------- writing
