@@ -2,18 +2,28 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 from tiny_models import TINY_PVSNET
 
 from colmap_pvs.config import config_to_dict, replace_config
 from colmap_pvs.errors import CheckpointError
-from colmap_pvs.model import CHECKPOINT_FORMAT, PVSNet, load_checkpoint, save_checkpoint
+from colmap_pvs.model import (
+    CHECKPOINT_FORMAT,
+    PVSNet,
+    PVSNetConfig,
+    load_checkpoint,
+    save_checkpoint,
+    stored_config,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 TINY = TINY_PVSNET
+WEIGHTS = Path(__file__).resolve().parents[1] / "colmap_pvs" / "weights"
 
 
 def _inputs():
@@ -41,7 +51,7 @@ def test_round_trip_gives_identical_outputs(tmp_path):
     assert isinstance(loaded, PVSNet) and not loaded.training
     assert loaded.config == model.config
     assert meta["step"] == 7 and meta["note"] == "hi" and meta["lr"] == 0.1
-    assert meta["format"] == CHECKPOINT_FORMAT and meta["model_config"] == config_to_dict(TINY)
+    assert meta["format"] == CHECKPOINT_FORMAT and meta["model_config"] == stored_config(TINY)
     with torch.inference_mode():
         a, b = model(*_inputs()), loaded(*_inputs())
     assert torch.equal(a.depth, b.depth) and torch.equal(a.visibility, b.visibility)
@@ -117,3 +127,31 @@ def test_invalid_or_unknown_config(tmp_path):
 def test_reserved_extra_keys_rejected(tmp_path):
     with pytest.raises(ValueError, match="reserved"):
         save_checkpoint(tmp_path / "r.pt", _trained_model(), extra={"state_dict": 1})
+
+
+def test_default_config_is_the_shipped_checkpoints():
+    """``PVSNet()`` is the network ``stereo`` runs: the defaults are the shipped checkpoint's config, and
+    their stored form is its ``model_config`` key for key, in order (what stereo's provenance records)."""
+    stored = torch.load(WEIGHTS / "pvsnet_default.pt", weights_only=True)["model_config"]
+    assert list(stored_config(PVSNetConfig()).items()) == list(stored.items())
+    assert load_checkpoint(WEIGHTS / "pvsnet_default.pt")[0].config == PVSNetConfig()
+
+
+def test_retired_options_load_at_their_one_value_and_are_refused_at_another(tmp_path):
+    path = save_checkpoint(tmp_path / "c.pt", _trained_model())
+    data = torch.load(path, weights_only=True)
+    assert (data["model_config"]["guidance_mode"], data["model_config"]["normalized_channels"]) == ("cost", 0)
+    assert load_checkpoint(path)[0].config == TINY
+    for key, value in (("guidance_mode", "probability"), ("normalized_channels", 2)):
+        torch.save({**data, "model_config": {**data["model_config"], key: value}}, path)
+        with pytest.raises(CheckpointError, match=f"c.pt.*{key}.* was removed"):
+            load_checkpoint(path)
+
+
+def test_a_config_stored_before_a_field_existed_means_it_off():
+    """``pvsnet_v2.pt`` was saved before ``frustum_weights`` and ``stage_neighbourhood`` existed: they are
+    off for it, whatever ``PVSNetConfig``'s defaults."""
+    stored = torch.load(WEIGHTS / "pvsnet_v2.pt", weights_only=True)["model_config"]
+    assert "frustum_weights" not in stored and "stage_neighbourhood" not in stored
+    config = load_checkpoint(WEIGHTS / "pvsnet_v2.pt")[0].config
+    assert (config.frustum_weights, config.stage_neighbourhood) == (False, 0)

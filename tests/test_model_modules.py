@@ -22,7 +22,7 @@ from colmap_pvs.model.cost import (
     group_correlation,
     guidance_weights,
 )
-from colmap_pvs.model.features import FeatureNet, normalized_intensity_channels
+from colmap_pvs.model.features import FeatureNet
 from colmap_pvs.model.layers import ConvBnReLU, Up3d, conv_nd
 from colmap_pvs.model.regularization import CoarseRegularizer, ResNet3D, StageRegularizer, UNet3D
 from colmap_pvs.model.visibility import (
@@ -50,15 +50,6 @@ def test_feature_net_shapes():
     outs = net(torch.rand(2, 3, 32, 48))
     assert [tuple(o.shape) for o in outs] == [(2, 16, 8, 12), (2, 8, 16, 24), (2, 4, 32, 48)]
     assert len(net(torch.rand(1, 3, 32, 48), levels=1)) == 1
-
-
-def test_normalized_channels_shape_and_illumination_invariance():
-    img = F.interpolate(torch.rand(1, 3, 4, 6), size=(32, 48), mode="bilinear", align_corners=False)
-    a = normalized_intensity_channels(img, 2)
-    b = normalized_intensity_channels(0.7 * img + 0.2, 2)
-    assert a.shape == (1, 2, 8, 12)
-    torch.testing.assert_close(a, b, atol=0.1, rtol=0.05)
-    assert a.abs().max() > 0.5
 
 
 @pytest.mark.parametrize("train", [True, False])
@@ -298,8 +289,6 @@ def test_guidance_weights_and_sparse_downsampling():
     assert int(gw[0, :, 0, 0].argmax()) == 5
     torch.testing.assert_close(gw[0, 5, 0, 0], torch.tensor(10.0))
     torch.testing.assert_close(gw[0, :, 1, 1], torch.ones(8))  # no hint: factor 1
-    glog = guidance_weights(small, inv_start, inv_step, 8, k=10.0, c=1.0, log=True)
-    torch.testing.assert_close(glog.exp(), gw)
     # A hint far outside the hypothesis range is ignored (factor 1), not allowed to zero the volume.
     small[0, 0, 1, 0] = 0.3  # nearer than depth_min = 1
     torch.testing.assert_close(

@@ -58,7 +58,7 @@ def test_overfit_single_sample():
     # Guided matching (Poggi et al.) on the trained weights, no retraining: hints at a wrong depth
     # pull the prediction at hinted pixels toward them.
     model.eval()
-    guided = PVSNet(replace_config(cfg, sparse_guidance=True, guidance_mode="cost")).eval()
+    guided = PVSNet(replace_config(cfg, sparse_guidance=True)).eval()
     guided.load_state_dict(model.state_dict())
     before, after = [], []
     with torch.inference_mode():

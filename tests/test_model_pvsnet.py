@@ -75,9 +75,27 @@ def test_default_config_small_input():
     cfg = PVSNetConfig()
     assert cfg.loss_weights == (0.5, 0.5, 0.7, 0.7, 0.7) and len(cfg.output_scales) == 5
     model = PVSNet().eval()
+    images, K, poses, dmin, dmax = make_inputs(1, 3, 40, 56)
+    sparse = torch.zeros(1, 1, 40, 56)
+    sparse[..., 3::8, 5::8] = 3.0
     with torch.inference_mode():
-        out = model(*make_inputs(1, 3, 40, 56))
+        out = model(images, K, poses, dmin, dmax)
+        hinted = model(images, K, poses, dmin, dmax, sparse_depth=sparse)
     check_output(out, cfg, 1, 3, 40, 56)
+    check_output(hinted, cfg, 1, 3, 40, 56)
+    assert out.prior_depth is None and hinted.prior_depth is not None
+
+
+def test_cameras_are_composed_in_float64_from_the_values_given():
+    """float32 cameras (as ``stereo`` passes them) give exactly what their values in float64 give."""
+    model = PVSNet(TINY).eval()
+    images, K, poses, dmin, dmax = make_inputs(1, 3, 32, 48)
+    K, poses = K.float(), poses.float()
+    with torch.inference_mode():
+        single = model(images, K, poses, dmin, dmax)
+        double = model(images, K.double(), poses.double(), dmin, dmax)
+    for a, b in zip(single.depths + single.confidences, double.depths + double.confidences, strict=True):
+        assert torch.equal(a, b)
 
 
 def test_padding_is_bottom_right_replicate_and_cropped_exactly():
@@ -108,8 +126,8 @@ def test_fewer_stages_still_give_full_resolution(num_stages):
     check_output(out, cfg, 1, 2, 45, 70)
 
 
-def test_visibility_off_and_normalized_channels():
-    cfg = replace_config(TINY, visibility=False, normalized_channels=2)
+def test_visibility_off():
+    cfg = replace_config(TINY, visibility=False)
     model = PVSNet(cfg).eval()
     assert model.visibility_net is None
     with torch.inference_mode():
@@ -177,18 +195,11 @@ def test_sparse_guidance_moves_depth_toward_hint():
     base = PVSNet(TINY).eval()
     with torch.inference_mode():
         plain = base(*inputs, sparse_depth=sparse)
-        for mode in ("probability", "both", "cost"):
-            guided_model = PVSNet(replace_config(TINY, sparse_guidance=True, guidance_mode=mode)).eval()
-            guided_model.load_state_dict(base.state_dict())  # no retraining
-            guided = guided_model(*inputs, sparse_depth=sparse)
-            assert torch.isfinite(guided.depth).all()
-            if mode == "cost":
-                assert not torch.allclose(guided.depth, plain.depth)
-                continue
-            hinted = sparse > 0
-            before = (plain.depth[:, None][hinted] - hint_depth).abs()
-            after = (guided.depth[:, None][hinted] - hint_depth).abs()
-            assert after.mean() < 0.5 * before.mean(), (mode, after.mean(), before.mean())
+        guided_model = PVSNet(replace_config(TINY, sparse_guidance=True)).eval()
+        guided_model.load_state_dict(base.state_dict())  # no retraining
+        guided = guided_model(*inputs, sparse_depth=sparse)
+        assert torch.isfinite(guided.depth).all()
+        assert not torch.allclose(guided.depth, plain.depth)
         # Guidance off: the hints are ignored.
         torch.testing.assert_close(base(*inputs).depth, plain.depth)
 

@@ -26,19 +26,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parents[1] / "colmap_pvs" / "weights" / "pvsnet_default.pt"
 
-#: The shipped checkpoint's architecture (colmap_pvs/weights/pvsnet_default.pt), random weights.
-SHIPPED_LIKE = PVSNetConfig(
-    feature_channels=(16, 8, 8),
-    planes_per_stage=(32, 8, 8),
-    groups_per_stage=(4, 4, 4),
-    visibility_channels=4,
-    regularization_channels=8,
-    stage_channels=(8, 8),
-    sparse_guidance=True,
-    sparse_prior=True,
-    stage_neighbourhood=2,
-    frustum_weights=True,
-)
+#: The shipped checkpoint's architecture (colmap_pvs/weights/pvsnet_default.pt: the defaults), random weights.
+SHIPPED_LIKE = PVSNetConfig()
 
 
 def make_inputs(B: int, N: int, H: int, W: int, seed: int = 0):
@@ -67,9 +56,9 @@ def _randomize_batch_norms(model: torch.nn.Module, seed: int = 1) -> None:
     [
         (SHIPPED_LIKE, 1, 4, 64, 80, 4096),  # tiny chunks: one plane / a few rows at a time
         (SHIPPED_LIKE, 2, 3, 48, 64, None),  # batch of 2, default chunk size
-        (replace_config(TINY_PVSNET, normalized_channels=2), 1, 3, 45, 70, 2048),
+        (TINY_PVSNET, 1, 3, 45, 70, 2048),
     ],
-    ids=["shipped-like-small-chunks", "shipped-like-batch2", "tiny-normalized-channels"],
+    ids=["shipped-like-small-chunks", "shipped-like-batch2", "tiny"],
 )
 def test_inference_path_matches_reference_path(monkeypatch, config, B, N, H, W, chunk):
     torch.manual_seed(0)
@@ -97,10 +86,9 @@ def test_inference_path_matches_reference_path(monkeypatch, config, B, N, H, W, 
 def test_chunked_two_view_cost_matches_reference(monkeypatch, per_pixel, weighted):
     """The cost volume itself (what the depths depend on only weakly with random weights)."""
     monkeypatch.setattr(runtime, "CHUNK_BYTES", 3000)  # 1 plane at a time
-    cfg = replace_config(SHIPPED_LIKE, normalized_channels=1)
-    model = PVSNet(cfg).eval()
+    model = PVSNet(SHIPPED_LIKE).eval()
     g = torch.Generator().manual_seed(0)
-    B, N, C, h, w, D = 2, 3, 17, 12, 20, 8  # 16 learned + 1 normalised channel
+    B, N, C, h, w, D = 2, 3, 16, 12, 20, 8
     feats = torch.randn(B, N, C, h, w, generator=g)
     _, K, poses, dmin, dmax, _ = make_inputs(B, N, 4 * h, 4 * w)
     K = K.double() * torch.tensor([0.25, 0.25, 1.0], dtype=torch.float64).view(3, 1)
@@ -110,7 +98,7 @@ def test_chunked_two_view_cost_matches_reference(monkeypatch, per_pixel, weighte
     else:
         depths = torch.linspace(1.0, 6.0, D).expand(B, D).clone()
     weight = torch.rand(B, 1, h, w, generator=g) if weighted else None
-    acc = torch.randn(B, 5, D, h, w, generator=g) if weighted else None
+    acc = torch.randn(B, 4, D, h, w, generator=g) if weighted else None
     def cost():
         start = None if acc is None else acc.clone()
         return model._two_view_cost(feats, K, poses, 2, depths, 0, weight, start)
@@ -119,7 +107,7 @@ def test_chunked_two_view_cost_matches_reference(monkeypatch, per_pixel, weighte
         ref = cost()
     with torch.no_grad():
         fast = cost()
-    assert fast.shape == ref.shape == (B, 5, D, h, w)
+    assert fast.shape == ref.shape == (B, 4, D, h, w)
     torch.testing.assert_close(fast, ref.detach(), atol=1e-5, rtol=1e-5)
 
 

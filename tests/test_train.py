@@ -314,3 +314,17 @@ def test_resume_accepts_a_checkpoint_written_before_a_field_existed(tmp_path: Pa
     torch.save(raw, last)
     with pytest.raises(ConfigError, match="no longer loads"):
         Trainer(cfg, train_dataset=PlaneDataset())
+
+
+def test_recorded_training_configs_keep_their_model() -> None:
+    """``train`` builds ``TRAIN_MODEL`` where a config is silent, not the shipped model (``PVSNetConfig()``):
+    a recorded config's partial ``model`` mapping (written before ``frustum_weights`` and
+    ``stage_neighbourhood`` existed, with the retired ``guidance_mode``) keeps its meaning."""
+    from colmap_pvs.model import PVSNetConfig
+    from colmap_pvs.train.config import TRAIN_MODEL
+
+    assert TrainConfig().model == TRAIN_MODEL != PVSNetConfig()
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "configs" / "plant_scratch.train_config.json"
+    model = load_config(TrainConfig, path).model
+    assert (model.frustum_weights, model.stage_neighbourhood, model.sparse_prior) == (False, 0, False)
+    assert model.feature_channels == (16, 8, 8)  # what the file says

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
+from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint, stored_config
 from .config import NETWORK_STRIDE, PARAMETER_FREE_FIELDS, PVSNetConfig
 from .pvsnet import PVSNet, PVSNetOutput
 
@@ -15,4 +15,5 @@ __all__ = [
     "PVSNetOutput",
     "load_checkpoint",
     "save_checkpoint",
+    "stored_config",
 ]

@@ -21,13 +21,49 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = "colmap-pvs-checkpoint/1"
 _RESERVED = ("format", "model_config", "state_dict", "step")
 
+#: :class:`PVSNetConfig` fields removed in colmap-pvs 0.2, each with the field it followed and the one
+#: value every recorded config gives it. Checkpoints and stereo provenance written by 0.1 hold them:
+#: :func:`stored_config` writes them back, so the provenance of maps made by 0.1 still matches (they are
+#: not recomputed) and a checkpoint is still read by 0.1; a stored config's are dropped when read.
+#: Drop in 0.3 (a workspace made before then recomputes its photometric maps once).
+RETIRED_FIELDS: dict[str, tuple[str, Any]] = {
+    "guidance_mode": ("guidance_c", "cost"),
+    "normalized_channels": ("prior_growth_radii", 0),
+}
+#: What a stored config written before these fields existed means (``pvsnet_v2.pt`` lacks them): off,
+#: not :class:`PVSNetConfig`'s default. Kept as long as a shipped checkpoint lacks them.
+ABSENT_FIELDS: dict[str, Any] = {"frustum_weights": False, "stage_neighbourhood": 0}
+
+
+def stored_config(config: PVSNetConfig) -> dict[str, Any]:
+    """The mapping a checkpoint (``model_config``) and stereo's provenance record for ``config``: its
+    fields, with :data:`RETIRED_FIELDS` at their value in their old place."""
+    after = {prev: (name, value) for name, (prev, value) in RETIRED_FIELDS.items()}
+    out: dict[str, Any] = {}
+    for key, value in config_to_dict(config).items():
+        out[key] = value
+        if key in after:
+            out[after[key][0]] = after[key][1]
+    return out
+
+
+def read_stored_config(stored: dict[str, Any]) -> PVSNetConfig:
+    """The config a stored mapping (:func:`stored_config`, or one written before a field existed:
+    :data:`ABSENT_FIELDS`) describes. Raises :class:`ConfigError` for unknown keys, bad values and a
+    retired field at another value."""
+    stored = dict(stored)
+    for name, (_, value) in RETIRED_FIELDS.items():
+        if name in stored and stored[name] == value:
+            del stored[name]
+    return config_from_dict(PVSNetConfig, {**ABSENT_FIELDS, **stored})
+
 
 def save_checkpoint(
     path: str | os.PathLike, model: PVSNet, *, step: int = 0, extra: dict[str, Any] | None = None
 ) -> Path:
     """Save ``model`` to ``path`` atomically (temporary file + rename).
 
-    The file holds ``{"format": "colmap-pvs-checkpoint/1", "model_config": config_to_dict(model.config),
+    The file holds ``{"format": "colmap-pvs-checkpoint/1", "model_config": stored_config(model.config),
     "state_dict": ..., "step": step, **extra}``. ``extra`` values must be loadable with
     ``weights_only=True`` (tensors, numbers, strings, lists, dicts) and may not use the reserved keys.
     """
@@ -37,7 +73,7 @@ def save_checkpoint(
         raise ValueError(f"save_checkpoint: extra uses reserved key(s) {clash}")
     payload: dict[str, Any] = {
         "format": CHECKPOINT_FORMAT,
-        "model_config": config_to_dict(model.config),
+        "model_config": stored_config(model.config),
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
         "step": int(step),
     }
@@ -73,7 +109,7 @@ def load_checkpoint(
         if not isinstance(data.get(key), dict):
             raise CheckpointError(f"checkpoint {str(path)!r} has no valid {key!r} entry")
     try:
-        config = config_from_dict(PVSNetConfig, data["model_config"])
+        config = read_stored_config(data["model_config"])
     except ConfigError as exc:
         raise CheckpointError(f"checkpoint {str(path)!r} has an invalid model_config: {exc}") from None
     model = PVSNet(config)

@@ -9,7 +9,7 @@ resolution.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from ..errors import ConfigError
 
@@ -21,7 +21,7 @@ PLANE_MULTIPLE = 4
 #: same tensors, so they can be averaged and the fields flipped on trained weights (whether a flip
 #: helps is measured: ``frustum_weights`` needs weights trained with it).
 PARAMETER_FREE_FIELDS = frozenset({
-    "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "guidance_mode", "prior_fill",
+    "sparse_prior", "sparse_guidance", "guidance_k", "guidance_c", "prior_fill",
     "prior_halfwidth", "prior_growth", "prior_growth_radii", "stage_neighbourhood", "min_halfwidth_planes",
     "uncertainty_k", "confidence_planes", "loss_weights", "channels_last", "conv_dtype", "frustum_weights",
 })
@@ -29,10 +29,20 @@ PARAMETER_FREE_FIELDS = frozenset({
 
 @dataclass(frozen=True)
 class PVSNetConfig:
-    """Architecture of PVSNet. Saved inside every checkpoint; unknown keys are errors."""
+    """Architecture of PVSNet. Saved inside every checkpoint; unknown keys are errors.
+
+    The defaults are the shipped model's (``colmap_pvs/weights/pvsnet_default.pt``), so ``PVSNet()``
+    is the network ``stereo`` runs, with random weights [``tests/test_model_checkpoint.py::
+    test_default_config_is_the_shipped_checkpoints``].
+    """
+
+    #: Options that are gone, with the one value every recorded config gives them (accepted with a
+    #: warning in a mapping, refused with another value; a checkpoint's are dropped silently:
+    #: :data:`RETIRED_FIELDS`).
+    REMOVED_OPTIONS: ClassVar[dict[str, object]] = {"guidance_mode": "cost", "normalized_channels": 0}
 
     feature_channels: tuple[int, ...] = field(
-        default=(32, 16, 8),
+        default=(16, 8, 8),
         metadata={"help": "learned feature channels at H/4, H/2 and H (FPN outputs)"},
     )
     num_stages: int = field(
@@ -40,11 +50,11 @@ class PVSNetConfig:
         metadata={"help": "1 = coarse stage only (H/4), 2 = up to H/2, 3 = up to full resolution"},
     )
     planes_per_stage: tuple[int, ...] = field(
-        default=(32, 16, 8),
+        default=(32, 8, 8),
         metadata={"help": "depth hypotheses per stage (one value per stage, multiples of 4)"},
     )
     groups_per_stage: tuple[int, ...] = field(
-        default=(8, 8, 8),
+        default=(4, 4, 4),
         metadata={"help": "group-wise correlation groups per stage (must divide that stage's features)"},
     )
     visibility: bool = field(
@@ -58,7 +68,7 @@ class PVSNetConfig:
         metadata={"help": "zero visibility maps below truncation_threshold before aggregation"},
     )
     frustum_weights: bool = field(
-        default=False,
+        default=True,
         metadata={
             "help": "aggregation: weight each source's cost, per pixel and depth plane, by whether the "
             "plane's point projects inside that source image (the cascade stages: by the share of their "
@@ -70,7 +80,7 @@ class PVSNetConfig:
         default=0.05, metadata={"help": "visibility truncation threshold tau"}
     )
     visibility_channels: int = field(
-        default=8, metadata={"help": "base width of the visibility 3D U-Net (x1, x2, x4 per scale)"}
+        default=4, metadata={"help": "base width of the visibility 3D U-Net (x1, x2, x4 per scale)"}
     )
     regularization_channels: int = field(
         default=8, metadata={"help": "base width of the coarse 3D ResNet and the two stacked 3D U-Nets"}
@@ -89,7 +99,7 @@ class PVSNetConfig:
         metadata={"help": "minimum half-width of a next-stage range, in previous-stage plane spacings"},
     )
     stage_neighbourhood: int = field(
-        default=0,
+        default=2,
         metadata={
             "help": "next-stage range also spans the min..max of the previous estimate within this many "
             "previous-stage pixels (0: off), so a structure merged at a coarser stage can still separate"
@@ -99,22 +109,15 @@ class PVSNetConfig:
         default=4, metadata={"help": "confidence = probability mass of this many planes around the estimate"}
     )
     sparse_guidance: bool = field(
-        default=False,
+        default=True,
         metadata={"help": "Gaussian modulation around sparse depth hints (Poggi et al., CVPR 2019)"},
     )
     guidance_k: float = field(default=10.0, metadata={"help": "guided matching: peak height k"})
     guidance_c: float = field(
         default=1.0, metadata={"help": "guided matching: Gaussian width c, in plane-index units"}
     )
-    guidance_mode: Literal["cost", "probability", "both"] = field(
-        default="cost",
-        metadata={
-            "help": "what the guidance modulates: the aggregated matching volume (Poggi et al.), "
-            "the probability volume (a Gaussian prior, renormalised), or both"
-        },
-    )
     sparse_prior: bool = field(
-        default=False,
+        default=True,
         metadata={
             "help": "centre the coarse stage's hypotheses per pixel on a dense prior interpolated "
             "(see prior_fill) from the sparse depth hints, +- prior_halfwidth; pixels of an "
@@ -147,13 +150,6 @@ class PVSNetConfig:
         default=(8, 16),
         metadata={"help": "radii (coarse pixels, Chebyshev) of prior_growth, each >= 1"},
     )
-    normalized_channels: int = field(
-        default=0,
-        metadata={
-            "help": "fixed illumination-normalised grayscale channels at H/4 added as one extra "
-            "cost-volume channel in the coarse stage (0 = off)"
-        },
-    )
     channels_last: bool = field(
         default=True, metadata={"help": "use torch.channels_last_3d memory format for the 3D convolutions"}
     )
@@ -161,7 +157,7 @@ class PVSNetConfig:
         default="float32",
         metadata={
             "help": "inference only (training is float32): dtype of the convolutions' inputs, weights and "
-            "hidden activations; bfloat16 is ~2x faster on CPUs with AVX512-BF16 or AMX and moves the "
+            "hidden activations; bfloat16 is faster on CPUs with AVX512-BF16 or AMX and moves the "
             "depths slightly (measured: see benchmarks/RESULTS.md); adds no parameters"
         },
     )
@@ -235,10 +231,6 @@ class PVSNetConfig:
         need(self.guidance_k > 0, f"guidance_k must be > 0, got {self.guidance_k}")
         need(self.guidance_c > 0, f"guidance_c must be > 0, got {self.guidance_c}")
         need(
-            self.guidance_mode in ("cost", "probability", "both"),
-            f"unknown guidance_mode {self.guidance_mode!r}",
-        )
-        need(
             self.conv_dtype in ("float32", "bfloat16"),
             f"conv_dtype must be 'float32' or 'bfloat16', got {self.conv_dtype!r}",
         )
@@ -253,10 +245,6 @@ class PVSNetConfig:
         need(
             all(int(r) == r and r >= 1 for r in self.prior_growth_radii),
             f"prior_growth_radii must be integers >= 1, got {self.prior_growth_radii!r}",
-        )
-        need(
-            0 <= self.normalized_channels <= 8,
-            f"normalized_channels must be in [0, 8], got {self.normalized_channels}",
         )
 
     @property

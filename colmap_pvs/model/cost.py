@@ -200,8 +200,8 @@ def affine_fill_inverse_depth(
     ``slope_damping * weight * sigma**2`` so that one or two hints give a near-constant fit. The
     fit is clipped to the range ``[lo, hi]`` of the hints within about ``3 sigma``, widened by a
     quarter of ``hi - lo`` on each side, so that an extrapolation (to the image border, or across
-    a depth edge) stays near the depths its hints span (measured on hololens-dev: the quarter beats
-    both no widening and a whole span). Pixels that no scale reaches (and fits that are not
+    a depth edge) stays near the depths its hints span (the quarter is measured in
+    ``benchmarks/RESULTS.md``). Pixels that no scale reaches (and fits that are not
     positive) take :func:`densify_inverse_depth` (where the image has hints at all). The hints
     themselves are smoothed like every other pixel (SfM points are noisy). Scales of 4 pixels and
     more are computed on a grid pooled by about ``sigma / 2`` (:func:`_blurred_sums`).
@@ -268,28 +268,24 @@ def guidance_weights(
     num_planes: int,
     k: float,
     c: float,
-    *,
-    log: bool = False,
 ) -> torch.Tensor:
     """Guided-matching modulation (Poggi et al., "Guided Stereo Matching", CVPR 2019).
 
     Args:
         hint: ``[B, 1, h, w]`` sparse depth at this stage's resolution, 0 = no hint.
         inv_start, inv_step: the hypotheses (see :mod:`.warping`), broadcastable to ``[B, 1, h, w]``.
-        log: return the natural log of the factors instead (exact, no underflow far from the hint).
 
     Returns:
         ``[B, D, h, w]`` factors ``1 - v + v * k * exp(-(x - x*)^2 / (2 c^2))``, ``x`` the plane index
         and ``x*`` the hint's (continuous) plane index, both in units of this stage's inverse-depth
         spacing. ``v = 1`` at pixels with a hint whose ``x*`` lies within ``3c`` of the stage's
         hypothesis range, 0 elsewhere (factor 1): a hint the stage cannot represent is ignored
-        rather than wiping out the matching volume.
+        rather than wiping out the matching volume. Computed as the exponential of the factor's
+        logarithm (as PVSNet has always multiplied its cost by them).
     """
     inv_hint = torch.where(hint > 0, 1.0 / hint.clamp_min(1e-12), torch.zeros_like(hint))
     x_star = (inv_start - inv_hint) / inv_step  # [B, 1, h, w]
     on = (hint > 0) & (x_star >= -3.0 * c) & (x_star <= num_planes - 1 + 3.0 * c)
     x = torch.arange(num_planes, dtype=hint.dtype, device=hint.device).view(1, -1, 1, 1)
     sq = -((x - x_star) ** 2) / (2.0 * c * c)
-    if log:
-        return torch.where(on, math.log(k) + sq, torch.zeros_like(sq))
-    return torch.where(on, k * torch.exp(sq), torch.ones_like(sq))
+    return torch.where(on, math.log(k) + sq, torch.zeros_like(sq)).exp()

@@ -1,7 +1,4 @@
-"""Shared 2D feature extraction (paper sec. 3.1) with FPN-style finer outputs for the cascade.
-
-Also the fixed, illumination-normalised matching channels of the ``normalized_channels`` switch.
-"""
+"""Shared 2D feature extraction (paper sec. 3.1) with FPN-style finer outputs for the cascade."""
 
 from __future__ import annotations
 
@@ -9,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .layers import Conv, ConvBnReLU, conv_nd
+from .layers import Conv, ConvBnReLU
 
 
 class FeatureNet(nn.Module):
@@ -75,25 +72,3 @@ class FeatureNet(nn.Module):
                 inner2 = F.interpolate(self.top2(inner1), scale_factor=2.0, mode="nearest") + self.lat2(e0)
                 outs.append(self.out2(inner2))
         return outs
-
-
-def normalized_intensity_channels(images: torch.Tensor, count: int, scale: int = 4) -> torch.Tensor:
-    """Fixed, illumination-normalised grayscale channels.
-
-    ``images`` ``[B, 3, H, W]`` in [0, 1] -> ``[B, count, H/scale, W/scale]``: the grayscale
-    image, average-pooled by ``scale``, then normalised by its local mean and standard
-    deviation over ``(2j+3) x (2j+3)`` windows, ``j = 0..count-1`` (invariant to affine
-    intensity changes). Not learned.
-    """
-    gray = 0.299 * images[:, 0:1] + 0.587 * images[:, 1:2] + 0.114 * images[:, 2:3]
-    gray = F.avg_pool2d(gray, scale)
-    chans = []
-    for j in range(count):
-        k = 2 * j + 3
-        w = torch.full((1, 1, k, k), 1.0 / (k * k), dtype=gray.dtype, device=gray.device)
-        padded = F.pad(gray, (k // 2,) * 4, mode="replicate")
-        mean = conv_nd(padded, w, None, 1, 0)
-        sq = conv_nd(padded * padded, w, None, 1, 0)
-        std = (sq - mean * mean).clamp_min(0).sqrt()
-        chans.append((gray - mean) / (std + 0.01))
-    return torch.cat(chans, 1)

@@ -46,7 +46,7 @@ from .cost import (
     group_correlation,
     guidance_weights,
 )
-from .features import FeatureNet, normalized_intensity_channels
+from .features import FeatureNet
 from .layers import set_compute_dtype, to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
 from .runtime import plane_chunk
@@ -92,6 +92,39 @@ class PVSNetOutput:
     prior_depth: torch.Tensor | None = None
 
 
+@dataclass
+class _Inputs:
+    """The inputs as :meth:`PVSNet._prepare` hands them to the stages."""
+
+    intrinsics: torch.Tensor  # [B, N, 3, 3] float64, for the unpadded H, W (valid for the padded image)
+    cam_from_world: torch.Tensor  # [B, N, 4, 4] float64
+    depth_min: torch.Tensor  # [B], the model's dtype
+    depth_max: torch.Tensor  # [B]
+    inv_lo: torch.Tensor  # [B] 1 / depth_max
+    inv_hi: torch.Tensor  # [B] 1 / depth_min
+    hints: torch.Tensor | None  # [B, 1, Hp, Wp] sparse depth (0 = none) when guidance or prior use it
+    guidance: bool  # config.sparse_guidance and hints given
+    prior: bool  # config.sparse_prior and hints given
+    B: int
+    N: int
+    size: tuple[int, int]  # (H, W) of the input images
+    padded: tuple[int, int]  # (Hp, Wp): multiples of NETWORK_STRIDE
+
+
+@dataclass
+class _Stage:
+    """What one stage hands on: its outputs (cropped to the input's size at its scale), its last
+    regression and plane spacing (for the next stage's range); the coarse stage also its visibility
+    maps and the prior."""
+
+    inv_step: torch.Tensor
+    depths: list[torch.Tensor] = field(default_factory=list)  # [B, ceil(H/s), ceil(W/s)] each
+    confidences: list[torch.Tensor] = field(default_factory=list)
+    regression: Regression | None = None  # uncropped [B, Hp/s, Wp/s]
+    visibility: list[torch.Tensor] = field(default_factory=list)  # [B, 1, Hp/4, Wp/4] per source
+    prior_inv: torch.Tensor | None = None  # [B, 1, Hp/4, Wp/4], 0 = none
+
+
 def _shape(t: torch.Tensor) -> str:
     return str(list(t.shape))
 
@@ -104,21 +137,30 @@ def _check_tensor(name: str, t: object, expected: str, ok: bool) -> None:
 
 
 class PVSNet(nn.Module):
-    """PVSNet multi-view depth estimation network. All switches are in :class:`PVSNetConfig`.
+    """PVSNet multi-view depth estimation network. All switches are in :class:`PVSNetConfig`;
+    ``PVSNet()`` is the shipped model's architecture (random weights).
 
     ``forward(images, intrinsics, cam_from_world, depth_min, depth_max, sparse_depth=None)``:
 
     - ``images`` ``[B, N, 3, H, W]`` float in ``[0, 1]``, reference view at index 0, ``N >= 2``, any ``H, W``;
+      cast to the model's dtype;
     - ``intrinsics`` ``[B, N, 3, 3]`` ``K`` for these ``H, W`` (pixel centre of ``(col, row)`` at
       ``(col + 0.5, row + 0.5)``);
     - ``cam_from_world`` ``[B, N, 4, 4]`` (``x_cam = R x_world + t``);
     - ``depth_min``, ``depth_max`` ``[B]`` with ``0 < depth_min < depth_max``;
     - ``sparse_depth`` optional ``[B, 1, H, W]`` reference-view depth hints (0 = none), used only
       when ``config.sparse_guidance`` (Poggi modulation) or ``config.sparse_prior`` (coarse
-      hypotheses centred on the hints' push-pull interpolation) is on.
+      hypotheses centred on the hints' interpolation, ``config.prior_fill``) is on.
 
-    Images are padded bottom/right (replicate) to a multiple of 16 (``K`` unchanged) and the
-    outputs are cropped back. Returns a :class:`PVSNetOutput`.
+    The cameras may come in any floating dtype: they are cast to float64 (from the values given, so
+    float32 cameras are composed as their float32 values) and the relative poses and plane
+    homographies are composed in float64 [``tests/test_model_pvsnet.py::
+    test_cameras_are_composed_in_float64_from_the_values_given``]. Images are padded bottom/right
+    (replicate) to a multiple of 16 (``K`` unchanged) and the outputs are cropped back. Returns a
+    :class:`PVSNetOutput`.
+
+    ``forward`` reads as its stages: :meth:`_prepare` (cast, pad), the shared features,
+    :meth:`_coarse_stage`, one :meth:`_cascade_stage` per further stage, :meth:`_output`.
     """
 
     def __init__(self, config: PVSNetConfig | None = None) -> None:
@@ -126,9 +168,9 @@ class PVSNet(nn.Module):
         self.config = config if config is not None else PVSNetConfig()
         cfg = self.config
         self.features = FeatureNet(cfg.feature_channels)
-        coarse_in = cfg.groups_per_stage[0] + (1 if cfg.normalized_channels > 0 else 0)
-        self.visibility_net = VisibilityNet(coarse_in, cfg.visibility_channels) if cfg.visibility else None
-        self.coarse = CoarseRegularizer(coarse_in, cfg.regularization_channels, cfg.resnet_blocks)
+        G0 = cfg.groups_per_stage[0]
+        self.visibility_net = VisibilityNet(G0, cfg.visibility_channels) if cfg.visibility else None
+        self.coarse = CoarseRegularizer(G0, cfg.regularization_channels, cfg.resnet_blocks)
         self.stages = nn.ModuleList(
             StageRegularizer(cfg.groups_per_stage[k], cfg.stage_channels[k - 1])
             for k in range(1, cfg.num_stages)
@@ -211,64 +253,93 @@ class PVSNet(nn.Module):
         depth_max: torch.Tensor,
         sparse_depth: torch.Tensor | None = None,
     ) -> PVSNetOutput:
+        """Depth of the reference view (index 0): features, the coarse stage, the cascade stages.
+
+        Args: see the class docstring. Returns a :class:`PVSNetOutput`.
+        """
         self._check_inputs(images, intrinsics, cam_from_world, depth_min, depth_max, sparse_depth)
+        x, flat = self._prepare(images, intrinsics, cam_from_world, depth_min, depth_max, sparse_depth)
+        with record_function("pvsnet.features"):
+            feats = self.features(flat, self.config.num_stages)
+        del flat
+        feats = [f.contiguous(memory_format=torch.channels_last).view(x.B, x.N, *f.shape[1:]) for f in feats]
+        stages = [self._coarse_stage(x, feats[0])]
+        for k in range(1, self.config.num_stages):
+            stages.append(self._cascade_stage(k, x, feats[k], stages[-1], stages[0].visibility))
+        return self._output(x, stages)
+
+    def _prepare(
+        self,
+        images: torch.Tensor,
+        intrinsics: torch.Tensor,
+        cam_from_world: torch.Tensor,
+        depth_min: torch.Tensor,
+        depth_max: torch.Tensor,
+        sparse_depth: torch.Tensor | None,
+    ) -> tuple[_Inputs, torch.Tensor]:
+        """The inputs on the model's device and dtype (the cameras in float64), and the images
+        ``[B*N, 3, Hp, Wp]`` padded bottom/right (replicate) to a multiple of ``NETWORK_STRIDE``."""
         cfg = self.config
         param = next(self.parameters())
         dtype, device = param.dtype, param.device
-        images = images.to(device=device, dtype=dtype)
-        # Cameras stay in float64: relative poses and homographies are composed in double precision.
-        intrinsics = intrinsics.to(device=device, dtype=torch.float64)
-        cam_from_world = cam_from_world.to(device=device, dtype=torch.float64)
-        depth_min = depth_min.to(device=device, dtype=dtype)
-        depth_max = depth_max.to(device=device, dtype=dtype)
         B, N, _, H, W = images.shape
         Hp = math.ceil(H / NETWORK_STRIDE) * NETWORK_STRIDE
         Wp = math.ceil(W / NETWORK_STRIDE) * NETWORK_STRIDE
-        flat = images.reshape(B * N, 3, H, W)
+        flat = images.to(device=device, dtype=dtype).reshape(B * N, 3, H, W)
         if (Hp, Wp) != (H, W):
             # Bottom/right padding keeps K valid for the padded image.
             flat = F.pad(flat, (0, Wp - W, 0, Hp - H), mode="replicate")
         guidance = cfg.sparse_guidance and sparse_depth is not None
-        use_prior = cfg.sparse_prior and sparse_depth is not None
-        if guidance or use_prior:
-            hints_full = F.pad(sparse_depth.to(device=device, dtype=dtype), (0, Wp - W, 0, Hp - H))
-            hints_full = torch.nan_to_num(hints_full, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+        prior = cfg.sparse_prior and sparse_depth is not None
+        hints = None
+        if guidance or prior:
+            hints = F.pad(sparse_depth.to(device=device, dtype=dtype), (0, Wp - W, 0, Hp - H))
+            hints = torch.nan_to_num(hints, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0.0)
+        depth_min = depth_min.to(device=device, dtype=dtype)
+        depth_max = depth_max.to(device=device, dtype=dtype)
+        x = _Inputs(
+            intrinsics=intrinsics.to(device=device, dtype=torch.float64),
+            cam_from_world=cam_from_world.to(device=device, dtype=torch.float64),
+            depth_min=depth_min, depth_max=depth_max, inv_lo=1.0 / depth_max, inv_hi=1.0 / depth_min,
+            hints=hints, guidance=guidance, prior=prior, B=B, N=N, size=(H, W), padded=(Hp, Wp),
+        )
+        return x, flat
 
-        with record_function("pvsnet.features"):
-            feats = self.features(flat, cfg.num_stages)
-        if cfg.normalized_channels > 0:
-            feats[0] = torch.cat([feats[0], normalized_intensity_channels(flat, cfg.normalized_channels)], 1)
-        del flat
-        feats = [f.contiguous(memory_format=torch.channels_last).view(B, N, *f.shape[1:]) for f in feats]
-        inv_lo, inv_hi = 1.0 / depth_max, 1.0 / depth_min
+    def _coarse_stage(self, x: _Inputs, feats: torch.Tensor) -> _Stage:
+        """Stage 0 at ``H/4``: ``D0`` planes (global, or per pixel around the sparse prior), per-source
+        cost volumes weighted by the visibility network (and the frustum), the 3D ResNet and two U-Nets.
 
-        depths: list[torch.Tensor] = []
-        confidences: list[torch.Tensor] = []
-        sizes: list[tuple[int, int]] = []
+        Args:
+            feats: ``[B, N, C0, Hp/4, Wp/4]`` features.
 
-        # ---------------------------------------------------------- coarse stage
+        Returns:
+            three outputs (ResNet, U-Net 1, U-Net 2), the visibility maps ``[B, 1, Hp/4, Wp/4]`` of each
+            source and the prior's inverse depth ``[B, 1, Hp/4, Wp/4]`` (``None`` without it).
+        """
+        cfg = self.config
+        Hp, Wp = x.padded
         h, w = Hp // 4, Wp // 4
         D = cfg.planes_per_stage[0]
-        K = scale_intrinsics(intrinsics, 0.25)
-        if use_prior:
-            hint_coarse = downsample_sparse_depth(hints_full, 4)
-            if cfg.prior_fill == "affine":
-                prior_inv = affine_fill_inverse_depth(hint_coarse)
-            else:
-                prior_inv = densify_inverse_depth(hint_coarse)
+        K = scale_intrinsics(x.intrinsics, 0.25)
+        hint = downsample_sparse_depth(x.hints, 4) if x.hints is not None else None
+        prior_inv = None
+        if x.prior:
+            fill = affine_fill_inverse_depth if cfg.prior_fill == "affine" else densify_inverse_depth
+            prior_inv = fill(hint)
             halfwidth = prior_halfwidth_map(
-                hint_coarse, cfg.prior_halfwidth, cfg.prior_growth, cfg.prior_growth_radii
+                hint, cfg.prior_halfwidth, cfg.prior_growth, cfg.prior_growth_radii
             )
-            inv_start, inv_step = prior_plane_range(prior_inv, halfwidth, D, inv_lo=inv_lo, inv_hi=inv_hi)
-            plane_depths = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
+            inv_start, inv_step = prior_plane_range(prior_inv, halfwidth, D, inv_lo=x.inv_lo, inv_hi=x.inv_hi)
+            planes = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
         else:
-            inv_start, inv_step = plane_range(depth_min, depth_max, D)
-            plane_depths = hypothesis_depths(inv_start, inv_step, D)[:, :, 0, 0]  # [B, D]
+            inv_start, inv_step = plane_range(x.depth_min, x.depth_max, D)
+            planes = hypothesis_depths(inv_start, inv_step, D)[:, :, 0, 0]  # [B, D]
+        H, W = x.size
         vis_maps: list[torch.Tensor] = []
         acc = CostAccumulator()
-        for i in range(1, N):
+        for i in range(1, x.N):
             with record_function("pvsnet.coarse_cost"):
-                cost = self._two_view_cost(feats[0], K, cam_from_world, i, plane_depths, 0)
+                cost = self._two_view_cost(feats, K, x.cam_from_world, i, planes, 0)
             weight = None
             if self.visibility_net is not None:
                 with record_function("pvsnet.visibility"):
@@ -278,93 +349,116 @@ class PVSNet(nn.Module):
                 vis_maps.append(vis)
                 weight = vis
             if cfg.frustum_weights:  # [B, D, h, w]: no weight where the plane's point misses the source
-                inside = self._inside(K, cam_from_world, i, plane_depths, (h, w), (W / 4, H / 4))
+                inside = self._inside(K, x.cam_from_world, i, planes, (h, w), (W / 4, H / 4))
                 weight = inside if weight is None else weight * inside
             acc.add(cost, weight)
             del cost
         agg = acc.result()
         del acc
-        glog = None
-        if guidance:
-            hint = downsample_sparse_depth(hints_full, 4)
-            glog = guidance_weights(hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c, log=True)
-            if cfg.guidance_mode in ("cost", "both"):
-                agg = agg * glog.exp().unsqueeze(1)
+        if x.guidance:
+            agg = self._guide(agg, hint, inv_start, inv_step, D)
         with record_function("pvsnet.coarse_regularization"):
             logits = self.coarse(to_volume_format(agg, cfg.channels_last))
         del agg
-        reg: Regression | None = None
+        stage = _Stage(inv_step=inv_step, visibility=vis_maps, prior_inv=prior_inv)
         for lg in logits:
-            prob = self._probability(lg, glog)
-            reg = regress_inverse_depth(prob, inv_start, inv_step)
-            depths.append(reg.depth)
-            confidences.append(probability_confidence(prob, reg.index, cfg.confidence_planes))
-            sizes.append((math.ceil(H / 4), math.ceil(W / 4)))
-        del logits
+            self._regress(stage, lg, inv_start, inv_step, (math.ceil(H / 4), math.ceil(W / 4)))
+        return stage
 
-        # ---------------------------------------------------------- cascade stages
-        for k in range(1, cfg.num_stages):
-            scale = 4 // (2**k)
-            h, w = Hp // scale, Wp // scale
-            D = cfg.planes_per_stage[k]
-            inv_start, inv_step = next_stage_range(
-                reg.inv_mean,
-                reg.inv_sigma,
-                inv_step,
-                (h, w),
-                D,
-                k=cfg.uncertainty_k,
-                min_halfwidth_planes=cfg.min_halfwidth_planes,
-                inv_lo=inv_lo,
-                inv_hi=inv_hi,
-                neighbourhood=cfg.stage_neighbourhood,
-            )
-            hyp = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
-            Kk = scale_intrinsics(intrinsics, 1.0 / scale)
-            frustum = None
-            if cfg.frustum_weights:  # the share of this stage's planes whose point each source sees
-                valid = (W / scale, H / scale)
-                frustum = [self._inside(Kk, cam_from_world, i, hyp, (h, w), valid).mean(1, True)
-                           for i in range(1, N)]
-            weights = self._stage_weights(vis_maps, (h, w), N - 1, frustum)
-            agg = None
-            for i in range(1, N):
-                # Accumulates sum_i w_i C_i directly (w_i normalised beforehand): no per-view volume.
-                with record_function(f"pvsnet.stage{k}_cost"):
-                    agg = self._two_view_cost(feats[k], Kk, cam_from_world, i, hyp, k, weights[i - 1], agg)
-            del hyp
-            glog = None
-            if guidance:
-                hint = downsample_sparse_depth(hints_full, scale)
-                glog = guidance_weights(
-                    hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c, log=True
-                )
-                if cfg.guidance_mode in ("cost", "both"):
-                    agg = agg * glog.exp().unsqueeze(1)
-            with record_function(f"pvsnet.stage{k}_regularization"):
-                lg = self.stages[k - 1](to_volume_format(agg, cfg.channels_last))
-            del agg
-            prob = self._probability(lg, glog)
-            reg = regress_inverse_depth(prob, inv_start, inv_step)
-            depths.append(reg.depth)
-            confidences.append(probability_confidence(prob, reg.index, cfg.confidence_planes))
-            sizes.append((math.ceil(H / scale), math.ceil(W / scale)))
+    def _cascade_stage(
+        self, k: int, x: _Inputs, feats: torch.Tensor, previous: _Stage, vis_maps: list[torch.Tensor]
+    ) -> _Stage:
+        """Cascade stage ``k`` at ``H/s``, ``s = 4 / 2**k``: ``Dk`` hypotheses per pixel from the previous
+        stage's inverse-depth uncertainty, the sources' costs weighted by the upsampled coarse visibility
+        (and the share of planes in each source's frustum), one 3D U-Net.
 
-        depths = [d[:, : s[0], : s[1]] for d, s in zip(depths, sizes, strict=True)]
-        confidences = [c[:, : s[0], : s[1]] for c, s in zip(confidences, sizes, strict=True)]
+        Args:
+            feats: ``[B, N, Ck, Hp/s, Wp/s]`` features; ``vis_maps``: the coarse stage's.
+        """
+        cfg = self.config
+        scale = cfg.stage_scale(k)
+        Hp, Wp = x.padded
+        H, W = x.size
+        h, w = Hp // scale, Wp // scale
+        D = cfg.planes_per_stage[k]
+        reg = previous.regression
+        inv_start, inv_step = next_stage_range(
+            reg.inv_mean,
+            reg.inv_sigma,
+            previous.inv_step,
+            (h, w),
+            D,
+            k=cfg.uncertainty_k,
+            min_halfwidth_planes=cfg.min_halfwidth_planes,
+            inv_lo=x.inv_lo,
+            inv_hi=x.inv_hi,
+            neighbourhood=cfg.stage_neighbourhood,
+        )
+        hyp = hypothesis_depths(inv_start, inv_step, D)  # [B, D, h, w]
+        K = scale_intrinsics(x.intrinsics, 1.0 / scale)
+        frustum = None
+        if cfg.frustum_weights:  # the share of this stage's planes whose point each source sees
+            valid = (W / scale, H / scale)
+            frustum = [self._inside(K, x.cam_from_world, i, hyp, (h, w), valid).mean(1, True)
+                       for i in range(1, x.N)]
+        weights = self._stage_weights(vis_maps, (h, w), x.N - 1, frustum)
+        agg = None
+        for i in range(1, x.N):
+            # Accumulates sum_i w_i C_i directly (w_i normalised beforehand): no per-view volume.
+            with record_function(f"pvsnet.stage{k}_cost"):
+                agg = self._two_view_cost(feats, K, x.cam_from_world, i, hyp, k, weights[i - 1], agg)
+        del hyp
+        if x.guidance:
+            agg = self._guide(agg, downsample_sparse_depth(x.hints, scale), inv_start, inv_step, D)
+        with record_function(f"pvsnet.stage{k}_regularization"):
+            logits = self.stages[k - 1](to_volume_format(agg, cfg.channels_last))
+        del agg
+        stage = _Stage(inv_step=inv_step)
+        self._regress(stage, logits, inv_start, inv_step, (math.ceil(H / scale), math.ceil(W / scale)))
+        return stage
+
+    def _guide(
+        self, agg: torch.Tensor, hint: torch.Tensor, inv_start: torch.Tensor, inv_step: torch.Tensor, D: int
+    ) -> torch.Tensor:
+        """The aggregated cost ``[B, G, D, h, w]`` times the Poggi guidance factors of the hints
+        ``[B, 1, h, w]`` (:func:`~colmap_pvs.model.cost.guidance_weights`)."""
+        cfg = self.config
+        factors = guidance_weights(hint, inv_start, inv_step, D, cfg.guidance_k, cfg.guidance_c)
+        return agg * factors.unsqueeze(1)
+
+    def _regress(
+        self, stage: _Stage, logits: torch.Tensor, inv_start: torch.Tensor, inv_step: torch.Tensor,
+        size: tuple[int, int],
+    ) -> None:
+        """Add to ``stage`` the depth and confidence of ``logits`` ``[B, D, h, w]`` (softmax over depth,
+        inverse-depth regression), cropped to ``size`` (the unpadded image's at this scale)."""
+        prob = torch.softmax(logits, 1)
+        stage.regression = regress_inverse_depth(prob, inv_start, inv_step)
+        conf = probability_confidence(prob, stage.regression.index, self.config.confidence_planes)
+        stage.depths.append(stage.regression.depth[:, : size[0], : size[1]])
+        stage.confidences.append(conf[:, : size[0], : size[1]])
+
+    def _output(self, x: _Inputs, stages: list[_Stage]) -> PVSNetOutput:
+        """The stages' outputs, the final one at the input's size, the visibility maps and the prior
+        cropped to ``ceil(H/4) x ceil(W/4)``."""
+        cfg = self.config
+        H, W = x.size
+        depths = [d for s in stages for d in s.depths]
+        confidences = [c for s in stages for c in s.confidences]
         final_depth, final_conf = depths[-1], confidences[-1]
         if final_depth.shape[-2:] != (H, W):
             f = cfg.stage_scale(cfg.num_stages - 1)
             final_depth = _upsample_nearest(final_depth, f)[:, :H, :W]
             final_conf = _upsample_nearest(final_conf, f)[:, :H, :W]
         hc, wc = math.ceil(H / 4), math.ceil(W / 4)
+        vis_maps = stages[0].visibility
         if vis_maps:
             visibility = torch.cat(vis_maps, 1)[:, :, :hc, :wc]
         else:
-            visibility = torch.ones(B, N - 1, hc, wc, dtype=dtype, device=device)
+            visibility = torch.ones(x.B, x.N - 1, hc, wc, dtype=x.depth_min.dtype, device=x.depth_min.device)
         prior_depth = None
-        if use_prior:
-            inv = prior_inv[:, 0, :hc, :wc]
+        if stages[0].prior_inv is not None:
+            inv = stages[0].prior_inv[:, 0, :hc, :wc]
             prior_depth = torch.where(inv > 0, 1.0 / inv.clamp_min(1e-12), torch.zeros_like(inv))
         return PVSNetOutput(
             depth=final_depth,
@@ -388,7 +482,8 @@ class PVSNet(nn.Module):
         pixel_weight: torch.Tensor | float | None = None,
         accumulate: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Contiguous two-view cost ``[B, G(+1), D, h, w]`` of view ``src`` (features ``[B, N, C, h, w]``).
+        """Contiguous two-view cost ``[B, G, D, h, w]`` of view ``src`` (features ``[B, N, C, h, w]``,
+        ``depths`` ``[B, D]`` planes or ``[B, D, h, w]`` per pixel, ``K`` ``[B, N, 3, 3]`` at this scale).
 
         With ``pixel_weight`` ``[B, 1, h, w]`` the cost is weighted; with ``accumulate`` it is added to it.
         """
@@ -396,22 +491,13 @@ class PVSNet(nn.Module):
             return self._two_view_cost_chunked(
                 feats, K, cam_from_world, src, depths, stage, pixel_weight, accumulate
             )
-        cfg = self.config
-        _, _, C, h, w = feats.shape
+        _, _, _, h, w = feats.shape
         D = depths.shape[1]
         grid = homography_grid(K[:, 0], K[:, src], relative_pose(cam_from_world, src), depths, h, w)
         warped = warp_features(feats[:, src], grid, D)
         del grid
-        ref = feats[:, 0]
-        G = cfg.groups_per_stage[stage]
-        n = cfg.normalized_channels if stage == 0 else 0
-        if n > 0:
-            learned = C - n
-            cost = group_correlation(ref[:, :learned], warped[:, :learned], G, pixel_weight=pixel_weight)
-            extra = group_correlation(ref[:, learned:], warped[:, learned:], 1, pixel_weight=pixel_weight)
-            cost = torch.cat([cost, extra], 1)
-            return cost if accumulate is None else accumulate + cost
-        return group_correlation(ref, warped, G, pixel_weight=pixel_weight, accumulate=accumulate)
+        G = self.config.groups_per_stage[stage]
+        return group_correlation(feats[:, 0], warped, G, pixel_weight=pixel_weight, accumulate=accumulate)
 
     def _two_view_cost_chunked(
         self,
@@ -430,30 +516,22 @@ class PVSNet(nn.Module):
         Bounds the temporaries (grid, warped features) to ``runtime.CHUNK_BYTES`` whatever the image
         size, and keeps them small enough to be recycled by the allocator instead of page-faulted in.
         """
-        cfg = self.config
         B, _, C, h, w = feats.shape
         D = depths.shape[1]
-        G = cfg.groups_per_stage[stage]
-        n = cfg.normalized_channels if stage == 0 else 0
-        learned = C - n
+        G = self.config.groups_per_stage[stage]
         out = accumulate
         if out is None:
-            out = torch.empty(B, G + (1 if n > 0 else 0), D, h, w, dtype=feats.dtype, device=feats.device)
+            out = torch.empty(B, G, D, h, w, dtype=feats.dtype, device=feats.device)
         rays, b = homography_rays(K[:, 0], K[:, src], relative_pose(cam_from_world, src), h, w, feats.dtype)
-        ref, source = feats[:, 0], feats[:, src]
         # The reference side of the correlation, weighted and scaled once per source.
-        r_learned = correlation_reference(ref[:, :learned], G, pixel_weight)
-        r_extra = correlation_reference(ref[:, learned:], 1, pixel_weight) if n > 0 else None
+        ref = correlation_reference(feats[:, 0], G, pixel_weight)
         step = plane_chunk(B * C * h * w * feats.element_size(), D)
-        add = accumulate is not None
         for d0 in range(0, D, step):
             d1 = min(D, d0 + step)
             grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
-            warped = warp_features(source, grid, d1 - d0)
+            warped = warp_features(feats[:, src], grid, d1 - d0)
             del grid
-            correlate_into(r_learned, warped[:, :learned], out[:, :G, d0:d1], accumulate=add)
-            if r_extra is not None:
-                correlate_into(r_extra, warped[:, learned:], out[:, G:, d0:d1], accumulate=add)
+            correlate_into(ref, warped, out[:, :, d0:d1], accumulate=accumulate is not None)
             del warped
         return out
 
@@ -477,13 +555,6 @@ class PVSNet(nn.Module):
         h, w = size
         rays, b = homography_rays(K[:, 0], K[:, src], relative_pose(cam_from_world, src), h, w, depths.dtype)
         return inside_source(rays, b, depths, h, w, valid_size).to(depths.dtype)
-
-    def _probability(self, logits: torch.Tensor, glog: torch.Tensor | None) -> torch.Tensor:
-        """Softmax over depth of ``[B, D, h, w]`` logits; in probability-guidance mode times the
-        guidance factors, renormalised (done in log space: ``softmax(logits + log factor)``)."""
-        if glog is not None and self.config.guidance_mode in ("probability", "both"):
-            logits = logits + glog
-        return torch.softmax(logits, 1)
 
     def num_parameters(self) -> int:
         """Number of trainable parameters."""

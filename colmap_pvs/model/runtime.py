@@ -73,7 +73,7 @@ def estimate_peak_memory(
     P = float(Hp * Wp)
     N = num_views
     levels = cfg.num_stages
-    per_pixel = (cfg.feature_channels[0] + cfg.normalized_channels) / 16.0
+    per_pixel = cfg.feature_channels[0] / 16.0
     if levels >= 2:
         per_pixel += cfg.feature_channels[1] / 4.0
     if levels >= 3:
@@ -86,7 +86,7 @@ def estimate_peak_memory(
     # Coarse stage (H/4): per-source cost + weighted and plain accumulators + visibility net, then the
     # aggregated volume, its channels-last copy, the ResNet/U-Net activations and three logit volumes.
     P0, D0 = P / 16.0, cfg.planes_per_stage[0]
-    G0 = cfg.groups_per_stage[0] + (1 if cfg.normalized_channels > 0 else 0)
+    G0 = cfg.groups_per_stage[0]
     cv, c = cfg.visibility_channels, cfg.regularization_channels
     phases.append(always + D0 * P0 * max(4.0 * G0 + 2.5 * cv, 2.0 * G0 + 6.0 * c + 3.0))
     # Cascade stages: hypotheses, per-source weights, the aggregated volume and its channels-last copy,

@@ -14,6 +14,7 @@ from ..config import save_config
 from ..errors import ConfigError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
 from ..io.workspace import write_fusion_cfg
+from ..model import stored_config
 from .config import CONFIG_FILENAME, Stage, StereoConfig
 from .confirm import confirm_pass
 from .context import RefOutcome, StereoContext, StereoResult, patch_match_note, prepare_stereo
@@ -102,7 +103,7 @@ def run_local(config: StereoConfig) -> StereoResult:
         ws = ctx.workspace
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
-                checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
+                checkpoint_sha256=ctx.checkpoint_sha256, model_config=stored_config(ctx.net.config))
     result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
     result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
     result.timings["prepare"] = wall.steps["prepare"]

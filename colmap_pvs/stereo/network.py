@@ -88,6 +88,9 @@ def estimate_depth(model, images, intrinsics, poses, depth_range, sparse_depth, 
         intrinsics: ``[N, 3, 3]``; poses: ``[N, 4, 4]`` cam_from_world.
         depth_range: ``(d_min, d_max)``; sparse_depth: ``[H, W]`` (0 = no point).
 
+    Every input goes to the network as float32, the cameras too: the network composes them in float64
+    from these rounded values (:class:`~colmap_pvs.model.PVSNet`), as every map so far was made.
+
     Returns:
         depth ``[H, W]``, score ``[H, W]`` (:func:`cascade_confidence`), coarse visibility
         ``[N-1, ceil(H/4), ceil(W/4)]`` and

@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import config_to_dict
 from ..errors import MapFormatError
 from ..io.files import atomic_write_bytes, file_sha256, write_files_together
 from ..io.maps import (
@@ -35,6 +34,7 @@ from ..io.maps import (
     write_normal_map,
 )
 from ..io.workspace import Workspace, move_aside
+from ..model import stored_config
 from .config import FORMAT_VERSIONS, Stage, pass_settings
 from .reference import (
     PassMaps,
@@ -96,7 +96,7 @@ def photometric_settings(ctx: StereoContext, name: str, sources: list[str]) -> d
     entry = ctx.selection.references[name]
     s.update(checkpoint_sha256=ctx.checkpoint_sha256, sources=list(sources),
              depth_range=[float(f"{entry.depth_range[0]:.9g}"), float(f"{entry.depth_range[1]:.9g}")],
-             model_config=config_to_dict(ctx.net.config),
+             model_config=stored_config(ctx.net.config),
              image_sha256=ctx.image_sha256(name), camera=ctx.camera_record(name), pose=ctx.pose_record(name),
              sparse_points=ctx.sparse_points_sha256(name),
              source_image_sha256={s: ctx.image_sha256(s) for s in sources},

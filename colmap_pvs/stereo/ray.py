@@ -45,6 +45,7 @@ from ..config import replace_config, save_config
 from ..errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
 from ..io.workspace import Workspace, write_fusion_cfg
+from ..model import stored_config
 from ..views import reference_sources
 from .config import CONFIG_FILENAME, StereoConfig
 from .context import RefOutcome, StereoResult, patch_match_note, prepare_stereo
@@ -223,7 +224,7 @@ class StereoWorker:
             "auxiliary": list(auxiliary_references(ctx)) if len(passes) > 1 else [],
             "checkpoint": str(ctx.checkpoint_path),
             "checkpoint_sha256": ctx.checkpoint_sha256,
-            "model_config": ctx.net.config,
+            "model_config": stored_config(ctx.net.config),
             "patch_match_note": patch_match_note(ctx.workspace, ctx.references,
                                                  ctx.config.photometric.num_views),
         }
