@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -94,17 +95,16 @@ def final_kind(config: StereoConfig) -> Stage:
     return "geometric" if config.geometric.enabled else "photometric"
 
 
-def run_local(config: StereoConfig) -> StereoResult:
+def run_local(config: StereoConfig, weights: Path | None = None) -> StereoResult:
     """:func:`run_stereo` in this process."""
     wall = time.perf_counter()
-    ctx = prepare_stereo(config, background_io=True)
+    ctx = prepare_stereo(config, background_io=True, weights=weights)
     ws = ctx.workspace
     remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
     t_prepare = time.perf_counter() - wall
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
                 checkpoint_sha256=ctx.checkpoint_sha256, model_config=ctx.net.config)
-    result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
-    result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
+    result = StereoResult(workspace=ws)
     result.timings["prepare"] = t_prepare
     outcomes: list[RefOutcome] = []
     names = list(ctx.references)
