@@ -42,7 +42,9 @@ settings in :mod:`.config` (one nested config per pass), what they share in :mod
 network, image cache), :mod:`.outputs` (paths, provenance, writers) and :mod:`.network`; the backends
 in :mod:`.local` and :mod:`.ray`; :func:`run_stereo` (:mod:`.run`) picks one. Python users call
 :func:`run_stereo`, or :func:`prepare_stereo` once and then :func:`process_reference` per reference
-and pass.
+and pass. The network is the checkpoint's, or other ``weights`` the caller gives: the ``stereo``
+command's test-time adaptation (``--adapt_*``) is a step above this package,
+:func:`colmap_pvs.adapt.run_adapted_stereo`, and nothing here imports it or the trainer.
 """
 
 from .config import (
