@@ -299,9 +299,9 @@ def main() -> int:
     ws = rd.make_workspace(work / "quick" / f"{a.tag}_clean", a.data / "images", sparse, a.resume)
     write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
     start = time.perf_counter()
-    from colmap_pvs.stereo import run_stereo
+    from colmap_pvs.adapt import run_adapted_stereo  # run_stereo, adapting first with adapt_steps=N
 
-    result = run_stereo(rd.stereo_config(ws, a, rd.parse_overrides(a.stereo)))
+    result = run_adapted_stereo(rd.stereo_config(ws, a, rd.parse_overrides(a.stereo)))
     stereo_s = time.perf_counter() - start
     print(f"[stereo] {len(result.processed)} references computed, {len(result.already_done)} kept, "
           f"{stereo_s:.0f} s", flush=True)

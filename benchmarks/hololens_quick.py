@@ -26,11 +26,11 @@ import time
 
 import real_depth as rd
 
+from colmap_pvs.adapt import run_adapted_stereo  # run_stereo, adapting first with --stereo adapt_steps=N
 from colmap_pvs.config import config_from_dict
 from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
-from colmap_pvs.stereo import run_stereo
 from colmap_pvs.views import ViewSelectionConfig, select_views
 
 
@@ -70,7 +70,7 @@ def main() -> int:
         ws = rd.make_workspace(work / "quick" / f"{a.tag}_{label}", a.data / "images", sparse, a.resume)
         write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", sources)
         start = time.perf_counter()
-        result = run_stereo(rd.stereo_config(ws, a, extra))
+        result = run_adapted_stereo(rd.stereo_config(ws, a, extra))
         wall = time.perf_counter() - start
         done = {  # per pass, the references computed now or kept as they were (--resume)
             "photometric": result.processed + result.already_done,

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import real_depth as rd
 
+from colmap_pvs.adapt import run_adapted_stereo  # run_stereo, adapting first with --stereo adapt_steps=N
 from colmap_pvs.io.sparse import read_sparse_model
-from colmap_pvs.stereo import run_stereo
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "colmap-statue"
 WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "statue"
@@ -95,7 +95,7 @@ def main() -> int:
         return 2
     ws = make_workspace(a.work_dir.resolve() / a.tag, a.data, a.resume)
     start = time.perf_counter()
-    result = run_stereo(rd.stereo_config(ws, a, rd.parse_overrides(a.stereo)))
+    result = run_adapted_stereo(rd.stereo_config(ws, a, rd.parse_overrides(a.stereo)))
     stereo_s = time.perf_counter() - start
     count = len(result.processed) + len(result.already_done)
 

@@ -72,7 +72,7 @@ COMMANDS: tuple[Command, ...] = (
         "stereo",
         "PVSNet depth + normal maps in COLMAP's format (replaces patch_match_stereo)",
         "colmap_pvs.stereo:StereoConfig",
-        "colmap_pvs.stereo:run_stereo",
+        "colmap_pvs.adapt:run_adapted_stereo",  # run_stereo, after the adaptation when --adapt_steps > 0
         "colmap_pvs.cli.reports:report_stereo",
         required=("workspace_path",),
         aliases=("patch_match_stereo",),

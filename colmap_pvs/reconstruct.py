@@ -7,7 +7,7 @@ run resumes where it stopped::
     matching   exhaustive (<= exhaustive_max_images) or sequential           (+ .done marker)
     mapping    incremental SfM (pycolmap.incremental_mapping)  WORKSPACE/sparse/0
     undistort  colmap_pvs.io.workspace.undistort                WORKSPACE/dense
-    stereo     colmap_pvs.stereo.run_stereo (per-image resumable)  WORKSPACE/dense/stereo
+    stereo     colmap_pvs.adapt.run_adapted_stereo (run_stereo, per-image resumable)  WORKSPACE/dense/stereo
     fusion     colmap_pvs.fusion.fuse                           WORKSPACE/dense/fused.ply(.vis)
     mesh       colmap_pvs.mesh.mesh                             WORKSPACE/dense/meshed-poisson.ply
 
@@ -528,12 +528,12 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
 def _reconstruct(
     config: ReconstructConfig, root: Path, names: list[str], prog: _Progress, result: ReconstructResult
 ) -> None:
+    from .adapt import run_adapted_stereo  # run_stereo, after test-time adaptation with adapt_steps
     from .fusion import FuseConfig, fuse
     from .io.ply import cloud_pair_is_complete, read_point_cloud, vis_path_of
     from .io.sfm import model_counts
     from .io.workspace import UndistortConfig, detect_workspace, undistort
     from .mesh import DEFAULT_MESH_NAME, MeshConfig, mesh
-    from .stereo import run_stereo
 
     image_dir = Path(config.image_path)
     total = time.perf_counter()
@@ -619,14 +619,14 @@ def _reconstruct(
         prog.skip("stereo", "depth maps already computed")
         if config.stereo.previews and not previews.is_dir():  # output-only: the maps stay as they are
             logger.info("reconstruct: writing the previews of the finished depth maps")
-            run_stereo(replace_config(config.stereo, workspace_path=dense))
+            run_adapted_stereo(replace_config(config.stereo, workspace_path=dense))
     else:
         prog.start("stereo")
         for stale in (fused, vis_path_of(fused), meshed):
             _remove_stale(stale)
         prog.unmark("fusion", "mesh")
-        st = run_stereo(replace_config(config.stereo, workspace_path=dense,
-                                       overwrite="stereo" in prog.overwrite))
+        st = run_adapted_stereo(replace_config(config.stereo, workspace_path=dense,
+                                               overwrite="stereo" in prog.overwrite))
         result.stereo_skipped = dict(st.skipped)
         prog.mark("stereo", inputs=stereo_inputs)  # as read before the run: an edit meanwhile is a change
         prog.stop()

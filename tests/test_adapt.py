@@ -1,18 +1,20 @@
-"""Test-time adaptation (colmap_pvs.adapt) and its hook in the stereo step."""
+"""Test-time adaptation (colmap_pvs.adapt): the adaptation itself and the step above ``stereo``."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import make_tiny_checkpoint
-from scenes import stereo_config
+from scenes import reconstruct_config, stereo_config
 
-import colmap_pvs.adapt as adapt_module
-from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint
+import colmap_pvs.adapt.checkpoint as adapt_module
+from colmap_pvs.adapt import AdaptConfig, adapt_checkpoint, run_adapted_stereo
+from colmap_pvs.cli.main import main
 from colmap_pvs.config import replace_config
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.io.files import file_sha256
@@ -142,13 +144,37 @@ def test_adaptation_lowers_the_self_supervised_loss(workspace, base):
     assert loss(done.checkpoint) < 0.98 * loss(base)  # 12 steps of a tiny random net
 
 
-def test_stereo_runs_adaptation_first(workspace, base):
-    result = run_stereo(
-        stereo_config(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
-                     adapt_steps=2, min_confidence=0.0)
-    )
-    assert result.processed and result.adapt_seconds > 0 and result.adapt_seconds_per_image > 0
-    assert (workspace / "stereo" / "adapt" / "adapted.pt").is_file()
+def test_the_stereo_command_adapts_first_and_runs_the_adapted_weights(workspace, base, capsys):
+    argv = ["stereo", "--workspace_path", str(workspace), "--checkpoint", str(base), "--num_views", "3",
+            "--max_image_size", "160", "--threads", "1", "--adapt_steps", "2", "--min_confidence", "0"]
+    assert main(argv) == 0
+    report = capsys.readouterr().out
+    assert re.search(r"test-time adaptation: [\d.]+ s \([\d.]+ s per reference image\)", report), report
+    adapted = workspace / "stereo" / "adapt" / "adapted.pt"
+    for prov in (workspace / "stereo" / "provenance").glob("*.photometric.json"):
+        assert json.loads(prov.read_text())["settings"]["checkpoint_sha256"] == file_sha256(adapted)
+    saved = json.loads((workspace / "stereo" / "colmap_pvs_stereo.json").read_text())
+    assert saved["checkpoint_used"] == str(adapted) and saved["config"]["adapt"]["steps"] == 2
+
+
+def test_run_stereo_adapts_nothing_and_says_what_does(workspace, base):
+    cfg = stereo_config(workspace_path=workspace, checkpoint=base, adapt_steps=2)
+    with pytest.raises(ConfigError, match=r"adapt_steps=2: .*colmap_pvs\.adapt\.run_adapted_stereo\("):
+        run_stereo(cfg)
+    assert not (workspace / "stereo" / "adapt").exists()
+
+
+def test_reconstruct_adapts_before_its_stereo_stage(analytic_scene, base, tmp_path):
+    from colmap_pvs.reconstruct import reconstruct
+
+    ws, out = analytic_scene["root"], tmp_path / "out"
+    reconstruct(reconstruct_config(image_path=ws / "images", workspace_path=out, input_path=ws / "sparse",
+                                   checkpoint=base, num_views=3, num_threads=1, max_image_size=64,
+                                   adapt_steps=1, stop_after="stereo"))
+    adapted = out / "dense" / "stereo" / "adapt" / "adapted.pt"
+    provs = list((out / "dense" / "stereo" / "provenance").glob("*.photometric.json"))
+    assert provs and all(json.loads(p.read_text())["settings"]["checkpoint_sha256"] == file_sha256(adapted)
+                         for p in provs)
 
 
 def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, base, monkeypatch):
@@ -167,7 +193,7 @@ def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, b
     monkeypatch.setattr(real_dataset, "crop_label_map", spy)
     cfg = stereo_config(workspace_path=workspace, checkpoint=base, num_views=3, max_image_size=160, threads=1,
                        adapt_steps=2, min_confidence=0.0, adapt_pseudo_labels="filled")
-    result = run_stereo(cfg)
+    result = run_adapted_stereo(cfg)
     assert crops and not any(crops)
     meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
     assert meta["fingerprint"]["labels"]["kind"] == "filled"
@@ -181,11 +207,11 @@ def test_self_training_adapts_on_the_base_runs_maps_then_runs_again(workspace, b
         assert (stereo_dir / "depth_maps" / f"{name}.filled.bin").is_file()
     # a rerun keeps everything (no first run, no adaptation)
     crops.clear()
-    again = run_stereo(cfg)
+    again = run_adapted_stereo(cfg)
     assert not crops and not again.processed and sorted(again.already_done) == names
     assert again.adapt_seconds == pytest.approx(meta["seconds"])
     # other label settings: adapted again, on the labels of a new base run
-    redo = run_stereo(replace_config(cfg, geom_max_depth_error=0.05))
+    redo = run_adapted_stereo(replace_config(cfg, geom_max_depth_error=0.05))
     assert crops and not any(crops) and sorted(redo.processed) == names
     new_meta = json.loads((stereo_dir / "adapt" / "adapted.json").read_text())
     assert new_meta["fingerprint"]["labels"] != meta["fingerprint"]["labels"]

@@ -25,6 +25,7 @@ import pytest
 from conftest import make_tiny_checkpoint
 from scenes import reconstruct_config, stereo_config
 
+from colmap_pvs.adapt import run_adapted_stereo
 from colmap_pvs.cli.main import main
 from colmap_pvs.errors import DistributedError
 from colmap_pvs.io.workspace import read_fusion_cfg
@@ -505,8 +506,8 @@ def test_ray_writes_the_maps_of_sub_folder_names_where_colmap_does(ray_cluster, 
 
 
 def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_path):
-    """With test-time adaptation the first worker adapts, the others reuse its weights: the maps equal
-    a local adapted run's."""
+    """With test-time adaptation the step above stereo adapts once, then every worker runs the adapted
+    weights: the maps equal a local adapted run's."""
     import torch
 
     ckpt = make_tiny_checkpoint(tmp_path / "base.pt", channels_last=False)
@@ -518,12 +519,13 @@ def test_ray_adapts_once_then_matches_local(ray_cluster, analytic_scene, tmp_pat
             shutil.rmtree(ws / "stereo" / sub)
         threads = torch.get_num_threads()
         try:
-            runs[backend] = run_stereo(stereo_config(
+            runs[backend] = run_adapted_stereo(stereo_config(
                 workspace_path=ws, checkpoint=ckpt, num_views=3, max_image_size=160, min_confidence=0.0,
                 adapt_steps=2, threads=1, backend=backend, ray_workers=2, ray_worker_threads=1))
         finally:
             torch.set_num_threads(threads)
-    assert runs["local"].adapt_seconds > 0 and len(runs["ray"].processed) == 5
+    assert runs["local"].adapt_seconds > 0 and runs["ray"].adapt_seconds > 0
+    assert len(runs["ray"].processed) == 5
     assert (tmp_path / "ray" / "stereo" / "adapt" / "adapted.pt").is_file()
     for f in sorted((tmp_path / "local" / "stereo" / "depth_maps").glob("*.bin")):
         assert (tmp_path / "ray" / "stereo" / "depth_maps" / f.name).read_bytes() == f.read_bytes(), f.name

@@ -113,7 +113,7 @@ def test_colmap_flags_with_an_equivalent_are_translated_into_the_config(caplog):
 
 
 def test_colmap_flags_reach_the_config(tmp_path, capsys, monkeypatch):
-    import colmap_pvs.stereo as stereo
+    import colmap_pvs.adapt as adapt
 
     seen = []
 
@@ -121,7 +121,7 @@ def test_colmap_flags_reach_the_config(tmp_path, capsys, monkeypatch):
         seen.append(config)
         raise ConfigError("stopped by the test")
 
-    monkeypatch.setattr(stereo, "run_stereo", run_stereo)
+    monkeypatch.setattr(adapt, "run_adapted_stereo", run_stereo)  # the stereo command's step
     ws = str(tmp_path / "ws")
     code = main(["patch_match_stereo", "--workspace_path", ws, "--workspace_format", "COLMAP",
                  "--PatchMatchStereo.max_image_size", "320", "--PatchMatchStereo.geom_consistency", "false",

@@ -44,10 +44,12 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # completion fits the model's dense prior (colmap_pvs.model.cost) to the kept pixels
     ("completion, views, mesh, evaluation", ("colmap_pvs.completion", "colmap_pvs.views",
                                              "colmap_pvs.mesh", "colmap_pvs.evaluate")),
+    # inference: runs the weights it is given, knows nothing of training
+    ("stereo", ("colmap_pvs.stereo",)),
     ("synthetic data", ("colmap_pvs.synthetic",)),
     ("training", ("colmap_pvs.train",)),
+    # the stereo command's --adapt_* step: trains a copy of the checkpoint, then runs stereo with it
     ("test-time adaptation", ("colmap_pvs.adapt",)),
-    ("stereo", ("colmap_pvs.stereo",)),
     ("fusion", ("colmap_pvs.fusion",)),
     ("pipelines", ("colmap_pvs.reconstruct", "colmap_pvs.demo", "colmap_pvs.average_weights")),
     ("cli", ("colmap_pvs.cli",)),
@@ -56,11 +58,6 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 #: The only module of ``colmap_pvs.io`` that ``colmap_pvs.model`` may import (stdlib only: atomic
 #: writes of checkpoints); the model never reads COLMAP's files, images or maps.
 MODEL_IO_ALLOWED = {"colmap_pvs.io.files"}
-
-#: The modules of ``colmap_pvs.stereo`` that may import ``colmap_pvs.adapt`` (which trains), and only
-#: inside a function, so that inference without test-time adaptation never loads the training code.
-STEREO_ADAPT_HOOKS = {"colmap_pvs.stereo.adaptation"}
-
 
 @dataclass(frozen=True)
 class Import:
@@ -215,7 +212,7 @@ def test_the_graph_reader_resolves_relative_and_lazy_imports():
     assert len(graph) > 50 and "colmap_pvs.cli.main" in graph and "colmap_pvs.stereo" in graph
     targets = {i.target for i in graph["colmap_pvs.views.selection"]}
     assert {"colmap_pvs.views.config", "colmap_pvs.views.scores", "colmap_pvs.types"} <= targets
-    lazy = {i.target for i in graph["colmap_pvs.adapt"] if i.lazy}
+    lazy = {i.target for i in graph["colmap_pvs.adapt.checkpoint"] if i.lazy}
     assert "colmap_pvs.train" in lazy and "colmap_pvs.train.real_dataset" in lazy
 
 
@@ -225,14 +222,14 @@ def test_the_graph_reader_follows_import_module_calls(tmp_path, monkeypatch):
         "from importlib import import_module\n"
         "def run():\n"
         "    importlib.import_module('colmap_pvs.train')\n"
-        "    import_module('.adaptation', __package__)\n"
+        "    import_module('.network', __package__)\n"
         "    __import__('colmap_pvs.adapt')\n"
         "    importlib.import_module(name_from_a_table)\n"
     )
     (tmp_path / "probe.py").write_text(source)
     monkeypatch.setitem(LIBRARY_FILES, "colmap_pvs.stereo.probe", tmp_path / "probe.py")
     found = {(i.target, i.lazy, i.line) for i in _imports("colmap_pvs.stereo.probe")}
-    assert found == {("colmap_pvs.train", True, 4), ("colmap_pvs.stereo.adaptation", True, 5),
+    assert found == {("colmap_pvs.train", True, 4), ("colmap_pvs.stereo.network", True, 5),
                      ("colmap_pvs.adapt", True, 6)}
 
 
@@ -281,17 +278,22 @@ def test_the_model_never_imports_io():
     assert not found, "\n".join(found)
 
 
-def test_inference_never_imports_training():
-    found = []
-    for m, imports in _graph().items():
-        if not (m == "colmap_pvs.stereo" or m.startswith("colmap_pvs.stereo.")):
-            continue
-        for i in imports:
-            if i.target == "colmap_pvs.train" or i.target.startswith("colmap_pvs.train."):
-                found.append(f"{m} imports {i.target}, line {i.line}")
-            elif i.target == "colmap_pvs.adapt" and (m not in STEREO_ADAPT_HOOKS or not i.lazy):
-                found.append(f"{m} imports colmap_pvs.adapt (trains) outside its lazy hook, line {i.line}")
+def _in(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def test_stereo_never_imports_training_or_adaptation():
+    """Inference stands on its own: no module of ``colmap_pvs.stereo`` imports the trainer or the
+    adaptation step above it, not even inside a function or through ``import_module``."""
+    found = [
+        f"{m} imports {i.target}{' (inside a function)' if i.lazy else ''}, line {i.line}"
+        for m, imports in _graph().items()
+        if _in(m, "colmap_pvs.stereo")
+        for i in imports
+        if _in(i.target, "colmap_pvs.train") or _in(i.target, "colmap_pvs.adapt")
+    ]
     assert not found, "\n".join(found)
+    assert _layer("colmap_pvs.stereo") < _layer("colmap_pvs.train") < _layer("colmap_pvs.adapt.stereo")
 
 
 def test_no_library_file_over_the_line_limit():

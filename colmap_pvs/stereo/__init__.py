@@ -45,7 +45,9 @@ in :mod:`.local` and :mod:`.ray`; :func:`run_stereo` (:mod:`.run`) picks one. A 
 made them) and hands it to its writer (:func:`~.outputs.write_pass`); it times its steps with a
 :class:`~.timing.Timer` (:mod:`.timing`), which ``StereoResult.timings`` sums. Python users call
 :func:`run_stereo`, or :func:`prepare_stereo` once and then :func:`process_reference` per reference
-and pass.
+and pass. The network is the checkpoint's, or other ``weights`` the caller gives: the ``stereo``
+command's test-time adaptation (``--adapt_*``) is a step above this package,
+:func:`colmap_pvs.adapt.run_adapted_stereo`, and nothing here imports it or the trainer.
 """
 
 from .config import (

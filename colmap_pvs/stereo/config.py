@@ -214,7 +214,9 @@ class CompletionConfig:
 
 @dataclass(frozen=True)
 class AdaptationConfig:
-    """Test-time adaptation of the network on the workspace's own images (flags ``--adapt_*``)."""
+    """Test-time adaptation of the network on the workspace's own images (flags ``--adapt_*``): the
+    step above this one, :func:`colmap_pvs.adapt.run_adapted_stereo`, which the ``stereo`` command runs.
+    This step checks them and records them with the run; it runs the weights that step gives it."""
 
     steps: int = field(
         default=0,

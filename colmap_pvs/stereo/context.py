@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from ..confidence import Calibration, checkpoint_calibration
-from ..errors import WorkspaceError
+from ..config import replace_config
+from ..errors import ConfigError, WorkspaceError
 from ..geometry import sparse_depth_map
 from ..io.files import file_sha256
 from ..io.images import load_image, resize_image
@@ -24,9 +25,8 @@ from ..io.maps import fusion_intrinsics
 from ..io.workspace import Workspace, load_workspace, read_patch_match_cfg
 from ..types import Image, SparseModel
 from ..views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
-from .adaptation import adapt_network
 from .config import Stage, StereoConfig
-from .network import load_stereo_model, resolve_device
+from .network import base_checkpoint_path, load_stereo_model, resolve_device
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +53,8 @@ class StereoResult:
     stage over the passes;
     ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
     per computed reference. ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
-    lists a subset) and got photometric maps for the geometric pass.
+    lists a subset) and got photometric maps for the geometric pass. ``adapt_seconds`` (in all and per
+    reference) is the time the step above that made the run's ``weights`` took (0 without one).
     """
 
     workspace: Workspace
@@ -237,7 +238,6 @@ class StereoContext:
     references: dict[str, object]
     id_order: np.ndarray
     images: ImageCache
-    adapt_seconds: float = 0.0
     loader: ThreadPoolExecutor | None = None
     writer: ThreadPoolExecutor | None = None
     pending_writes: list[Future] = field(default_factory=list)
@@ -365,25 +365,34 @@ class StereoContext:
             self.loader = self.writer = None
 
 
-def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> StereoContext:
+def check_weights(config: StereoConfig, weights: Path | None) -> None:
+    """Refuse ``adapt_steps > 0`` without the adapted ``weights``: this step runs a network, adapts none."""
+    if config.adapt.steps > 0 and weights is None:
+        raise ConfigError(
+            f"adapt_steps={config.adapt.steps}: run_stereo adapts no network; call "
+            "colmap_pvs.adapt.run_adapted_stereo(config) (what `colmap-pvs stereo` runs), which adapts "
+            "the checkpoint and then calls run_stereo with its weights"
+        )
+
+
+def prepare_stereo(config: StereoConfig, *, background_io: bool = False,
+                   weights: Path | None = None) -> StereoContext:
     """Load the workspace, the network and the view selection once.
 
     ``background_io``: decode the next references' images and write finished maps in two background
     threads (:meth:`StereoContext.prefetch`, :meth:`StereoContext.flush`); call
-    :meth:`StereoContext.close` at the end.
+    :meth:`StereoContext.close` at the end. ``weights``: see :func:`~colmap_pvs.stereo.run_stereo`.
     """
+    check_weights(config, weights)
     ws, model_sparse = load_workspace(config.workspace_path)
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
-    net, ckpt_path, _meta = load_stereo_model(config, device)
-    ckpt_sha256 = file_sha256(ckpt_path)
-    # the trained checkpoint's calibration, also for its test-time adaptation below (not refitted)
-    calibration = checkpoint_calibration(ckpt_path, ckpt_sha256)
-    adapt_seconds = 0.0
-    if config.adapt.steps > 0:  # test-time adaptation: the adapted checkpoint's sha enters provenance
-        net, ckpt_path, adapt_seconds = adapt_network(config, ws, ckpt_path, device)
-        ckpt_sha256 = file_sha256(ckpt_path)
+    run_config = config if weights is None else replace_config(config, checkpoint=weights)
+    net, ckpt_path, _meta = load_stereo_model(run_config, device)
+    ckpt_sha256 = file_sha256(ckpt_path)  # in every pass's provenance
+    base = base_checkpoint_path(config)  # its calibration, also for other weights (not refitted)
+    calibration = checkpoint_calibration(base, ckpt_sha256 if weights is None else file_sha256(base))
     selection: ViewSelection = select_views(
         model_sparse,
         ViewSelectionConfig(num_views=config.photometric.num_views),
@@ -407,7 +416,6 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False) -> Ster
         references=refs,
         id_order=np.argsort(model_sparse.points.ids, kind="stable"),
         images=ImageCache(ws, model_sparse, capacity=max(16, 3 * config.photometric.num_views)),
-        adapt_seconds=adapt_seconds,
         loader=ThreadPoolExecutor(1, thread_name_prefix="stereo-load") if background_io else None,
         writer=ThreadPoolExecutor(1, thread_name_prefix="stereo-write") if background_io else None,
     )

@@ -7,6 +7,7 @@ Python users (and the Ray backend) use :func:`~colmap_pvs.stereo.context.prepare
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -95,17 +96,16 @@ def final_kind(config: StereoConfig) -> Stage:
     return "geometric" if config.geometric.enabled else "photometric"
 
 
-def run_local(config: StereoConfig) -> StereoResult:
+def run_local(config: StereoConfig, weights: Path | None = None) -> StereoResult:
     """:func:`run_stereo` in this process."""
     wall = Timer()
     with wall.step("prepare"):
-        ctx = prepare_stereo(config, background_io=True)
+        ctx = prepare_stereo(config, background_io=True, weights=weights)
         ws = ctx.workspace
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
     save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
                 checkpoint_sha256=ctx.checkpoint_sha256, model_config=stored_config(ctx.net.config))
-    result = StereoResult(workspace=ws, adapt_seconds=ctx.adapt_seconds)
-    result.adapt_seconds_per_image = ctx.adapt_seconds / max(1, len(ctx.references))
+    result = StereoResult(workspace=ws)
     result.timings["prepare"] = wall.steps["prepare"]
     outcomes: list[RefOutcome] = []
     names = list(ctx.references)

@@ -167,7 +167,7 @@ class TaskGraph:
 # --------------------------------------------------------------------------- the worker (a Ray actor)
 
 
-def check_workspace_access(config: StereoConfig) -> None:
+def check_workspace_access(config: StereoConfig, weights: Path | None = None) -> None:
     """Fail with a message naming this host when it cannot read the inputs or write ``stereo/``."""
     where = f"Ray worker on {socket.gethostname()} (pid {os.getpid()})"
     root = Path(config.workspace_path)
@@ -188,24 +188,24 @@ def check_workspace_access(config: StereoConfig) -> None:
         raise WorkspaceError(f"{where} cannot create {str(stereo)!r} ({exc}); {SHARED_FS_HINT}") from None
     if not os.access(stereo, os.W_OK | os.X_OK):
         raise WorkspaceError(f"{where} cannot write into {str(stereo)!r}; {SHARED_FS_HINT}")
-    if config.checkpoint is not None and not os.access(config.checkpoint, os.R_OK):
-        raise CheckpointError(
-            f"{where} cannot read the checkpoint {str(config.checkpoint)!r}; {SHARED_FS_HINT}"
-        )
+    for path in (config.checkpoint, weights):
+        if path is not None and not os.access(path, os.R_OK):
+            raise CheckpointError(f"{where} cannot read the checkpoint {str(path)!r}; {SHARED_FS_HINT}")
 
 
 class StereoWorker:
     """One Ray actor: the stereo context is prepared once, then references are processed one by one."""
 
-    def __init__(self, config: StereoConfig):
+    def __init__(self, config: StereoConfig, weights: Path | None = None):
         self.config = config
+        self.weights = weights
         self.ctx = None
 
     def setup(self, passes: tuple[str, ...]) -> dict:
         """Check the workspace, :func:`prepare_stereo`, and return who we are plus the reference plan."""
         timer = Timer()
-        check_workspace_access(self.config)
-        self.ctx = ctx = prepare_stereo(self.config)
+        check_workspace_access(self.config, self.weights)
+        self.ctx = ctx = prepare_stereo(self.config, weights=self.weights)
         sources: dict[str, list[str] | None] = {}
         for name, spec in ctx.references.items():
             try:
@@ -301,11 +301,13 @@ def _reraise(exc: BaseException):
 
 
 class _Driver:
-    def __init__(self, ray, config: StereoConfig, passes: tuple[str, ...], joined: bool):
+    def __init__(self, ray, config: StereoConfig, passes: tuple[str, ...], joined: bool,
+                 weights: Path | None = None):
         from ray import exceptions as rex
 
         self.ray, self.config, self.passes = ray, config, passes
         self.wcfg = worker_config(config)
+        self.weights = None if weights is None else Path(weights).expanduser().absolute()
         self.deaths_types = (rex.RayActorError, rex.WorkerCrashedError, rex.NodeDiedError,
                              rex.OutOfMemoryError)
         self.task_error = rex.RayTaskError
@@ -343,7 +345,7 @@ class _Driver:
         logger.warning("stereo: %s; waiting for the cluster to grow", msg)
 
     def spawn(self) -> None:
-        actor = self.actor_cls.remote(self.wcfg)
+        actor = self.actor_cls.remote(self.wcfg, self.weights)
         self.actors.append(actor)
         self.starting[actor.setup.remote(self.passes)] = actor
 
@@ -510,8 +512,9 @@ def _result(ws: Workspace, plan: dict, passes: tuple[str, ...], outcomes: dict, 
     return result
 
 
-def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
-    """:func:`colmap_pvs.stereo.run_stereo` on a Ray cluster (see the module docstring).
+def run_stereo_ray(config: StereoConfig, weights: Path | None = None) -> DistributedStereoResult:
+    """:func:`colmap_pvs.stereo.run_stereo` on a Ray cluster (see the module docstring); every worker
+    runs ``weights`` when given (they must be on the shared file system, as the workspace).
 
     Raises:
         DistributedError: Ray missing, no worker alive, or a reference whose workers died
@@ -525,15 +528,10 @@ def run_stereo_ray(config: StereoConfig) -> DistributedStereoResult:
     started = _connect(ray, config)
     driver = None
     try:
-        driver = _Driver(ray, config, passes, joined=bool(config.ray.address))
-        # Test-time adaptation (adapt_steps) runs once, in the first worker; the others start after it
-        # and reuse its adapted checkpoint (stereo/adapt/adapted.pt) instead of each adapting again.
-        first = 1 if config.adapt.steps > 0 else driver.num_workers
-        for _ in range(first):
+        driver = _Driver(ray, config, passes, joined=bool(config.ray.address), weights=weights)
+        for _ in range(driver.num_workers):
             driver.spawn()
         plan = driver.wait_for_plan()
-        for _ in range(driver.num_workers - first):
-            driver.spawn()
         ws = Workspace(driver.wcfg.workspace_path)
         if not ws.stereo_dir.is_dir():
             raise WorkspaceError(f"the Ray driver cannot see {str(ws.stereo_dir)!r}; {SHARED_FS_HINT}")

@@ -1,25 +1,18 @@
-"""Test-time adaptation: fine-tune a copy of the network on the workspace's own images.
+"""Fine-tune a copy of a checkpoint on a workspace's own images (:func:`adapt_checkpoint`).
 
-Before inference, ``colmap-pvs stereo --adapt_steps K`` trains a copy of the checkpoint for
-``K`` steps (or ``adapt_max_seconds``, whichever ends first) on samples of the workspace
-itself, with the self-supervised losses of :mod:`colmap_pvs.train.selfsup` (multi-view
+The copy is trained for ``steps`` steps (or ``max_seconds``, whichever ends first) on samples of the
+workspace itself, with the self-supervised losses of :mod:`colmap_pvs.train.selfsup` (multi-view
 photometric consistency, the reference's SfM points as sparse labels disjoint from the hints,
-edge-aware smoothness). No ground truth is used. It runs through the ordinary
-:class:`~colmap_pvs.train.Trainer` with ``real_fraction=1``, so it is seeded, shows a progress
-bar and resumes after an interruption.
-
-Self-training (``colmap-pvs stereo --adapt_pseudo_labels filled``, or ``geometric``): the
-stereo step first runs every pass with the base checkpoint, and the adaptation then also fits
-those maps of the workspace as dense pseudo-labels (``AdaptConfig.pseudo_labels``, read as in
-:mod:`colmap_pvs.train.real_dataset`) before stereo runs again with the adapted weights. What the
-labels were made with (``labels``: the stereo settings of the passes that wrote them, hashed) is
-part of the fingerprint below, so changed settings adapt again on new labels.
+edge-aware smoothness), and with ``pseudo_labels`` also on the workspace's own maps of that kind
+(read as in :mod:`colmap_pvs.train.real_dataset`). No ground truth is used. It runs through the
+ordinary :class:`~colmap_pvs.train.Trainer` with ``real_fraction=1``, so it is seeded, shows a
+progress bar and resumes after an interruption.
 
 Files, all inside ``WORKSPACE/stereo/adapt/``: the run folder of the trainer (``last.pt``,
 ``log.csv``, ``config.json``), ``adapted.pt`` (the weights inference uses) and
-``adapted.json`` (provenance: the base checkpoint's sha256, the settings, steps and seconds).
-A rerun with the same base checkpoint and settings reuses ``adapted.pt``; any other base or
-setting starts the adaptation again from scratch.
+``adapted.json`` (provenance: the base checkpoint's sha256, the settings, what the pseudo-labels
+were made with, steps and seconds). A rerun with the same base checkpoint and settings reuses
+``adapted.pt``; any other base or setting starts the adaptation again from scratch.
 """
 
 from __future__ import annotations
@@ -33,9 +26,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import check_threads, config_to_dict
-from .errors import ConfigError
-from .io.files import atomic_write_bytes, file_sha256
+from ..config import check_threads, config_to_dict
+from ..errors import ConfigError
+from ..io.files import atomic_write_bytes, file_sha256
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +37,8 @@ ADAPT_DIRNAME = "adapt"
 
 @dataclass(frozen=True)
 class AdaptConfig:
-    """Settings of test-time adaptation (mirrored by ``StereoConfig.adapt_*``)."""
+    """Settings of :func:`adapt_checkpoint` (:func:`~colmap_pvs.adapt.stereo.adapt_config` makes them from
+    ``StereoConfig.adapt``)."""
 
     steps: int = field(default=0, metadata={"help": "optimizer steps (0 = no adaptation)"})
     max_seconds: float = field(default=0.0, metadata={"help": "stop after this many seconds (0 = no limit)"})
@@ -64,7 +58,7 @@ class AdaptConfig:
     )
 
     def __post_init__(self) -> None:
-        from .train.real_dataset import STEREO_PSEUDO_LABEL_KINDS
+        from ..train.real_dataset import STEREO_PSEUDO_LABEL_KINDS
 
         check_threads("threads", self.threads, auto=0)
         if self.pseudo_labels not in STEREO_PSEUDO_LABEL_KINDS:
@@ -133,9 +127,9 @@ def adapt_checkpoint(workspace_root: Path, stereo_dir: Path, base_checkpoint: Pa
         labels: with ``pseudo_labels``, what those maps were made with (e.g. the settings of the
             stereo run that wrote them): part of the fingerprint, so other labels adapt again.
     """
-    from .model import load_checkpoint
-    from .train import TrainConfig, Trainer, TrainingInterrupted
-    from .train.real_dataset import RealDatasetConfig
+    from ..model import load_checkpoint
+    from ..train import TrainConfig, Trainer, TrainingInterrupted
+    from ..train.real_dataset import RealDatasetConfig
 
     if config.steps <= 0:
         raise ConfigError("adapt_checkpoint needs AdaptConfig.steps > 0")
