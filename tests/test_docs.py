@@ -204,3 +204,40 @@ def test_every_benchmark_script_imports(script, monkeypatch):
             what = f"from {module} import {name}" if name else f"import {module}"
             broken.append(f"benchmarks/{script}.py:{line}: {what} fails ({exc})")
     assert not broken, "\n".join(broken)
+
+
+def _developing_guide_problems(text: str) -> list[str]:
+    """What the developer guide names in backquotes that does not exist: a path (``a/b.py``, a folder
+    ``a/``), a dotted ``colmap_pvs.`` name (module, then attributes), a ``tests/x.py::test`` name."""
+    problems = []
+    for token in re.findall(r"`([^`\s]+)`", text):
+        path, _, test = token.partition("::")
+        if "/" in path and not path.startswith("--"):
+            if not (ROOT / path.rstrip("/")).exists():
+                problems.append(f"no file {path}")
+            elif test and not re.search(rf"^def {re.escape(test)}\(", (ROOT / path).read_text(), re.M):
+                problems.append(f"no test {token}")
+        elif token.startswith("colmap_pvs."):
+            parts = token.split(".")
+            for cut in range(len(parts), 0, -1):  # the longest importable module, then its attributes
+                try:
+                    obj = importlib.import_module(".".join(parts[:cut]))
+                except ImportError:
+                    continue
+                try:
+                    for attr in parts[cut:]:
+                        obj = getattr(obj, attr)
+                except AttributeError:
+                    problems.append(f"no name {token}")
+                break
+    return problems
+
+
+def test_developing_guide_names_what_exists():
+    """docs/DEVELOPING.md's paths, modules, functions and tests exist (the guide follows the code)."""
+    text = (ROOT / "docs" / "DEVELOPING.md").read_text()
+    assert _developing_guide_problems(text) == []
+    stale = "`colmap_pvs/stereo/adaptation.py`, `colmap_pvs.stereo.local.run_localized`, " \
+            "`tests/test_docs.py::test_no_such_test`"
+    assert len(_developing_guide_problems(stale)) == 3
+    assert "docs/DEVELOPING.md" in (ROOT / "README.md").read_text()
