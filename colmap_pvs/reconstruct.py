@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Literal
 
 from .confidence import calibration_path, load_calibration
-from .config import check_threads, config_to_dict, replace_config, save_config
+from .config import check_threads, config_json_bytes, config_to_dict, replace_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, cached_file_hashes, file_sha256, files_state_sha256, remove_database
@@ -513,7 +513,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     remove_orphan_temps(prog.markers)
     prog.markers.mkdir(exist_ok=True)
     atomic_write_bytes(prog.markers / PHOTO_HASHES, json.dumps(photos).encode())
-    save_config(config, root / "colmap_pvs_reconstruct.json")
+    atomic_write_bytes(root / "colmap_pvs_reconstruct.json", config_json_bytes(config))
     from .io.pycolmap_output import (  # pycolmap itself is imported only inside io/
         pycolmap_log_to_file,
     )

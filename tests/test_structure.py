@@ -339,3 +339,13 @@ def test_stereo_help_lists_at_most_46_flags(capsys):
     assert exit_info.value.code == 0
     flags = re.findall(r"^\s+(?:-\w+, )?(--[\w.-]+)", capsys.readouterr().out, flags=re.MULTILINE)
     assert 0 < len(flags) <= 46, f"{len(flags)} flags: {flags}"
+
+
+#: What ``colmap_pvs.config`` (the config layer) may import of the package: the base layer's errors.
+CONFIG_IMPORTS_ALLOWED = {"colmap_pvs.errors"}
+
+
+def test_the_config_layer_imports_only_the_errors():
+    found = [f"colmap_pvs.config imports {i.target}, line {i.line}" for i in _graph()["colmap_pvs.config"]
+             if i.target not in CONFIG_IMPORTS_ALLOWED]
+    assert not found, "\n".join(found)
