@@ -15,7 +15,8 @@ that field), grouped under the nested field's ``metadata["title"]``; other neste
 through ``--config_file`` only. Mappings may use those flag names as keys as well as the nested
 form (:func:`config_from_dict`); a class may list options it no longer has in a ``REMOVED_OPTIONS``
 class attribute (flag name -> the value now fixed), which are then accepted with a warning when they
-hold that value.
+hold that value. Such an entry is kept only for a user's saved file, and its comment names the
+version that drops it (``tests/test_structure.py``).
 """
 
 from __future__ import annotations

@@ -251,7 +251,8 @@ def _photos_fingerprint(hashes: dict[str, list]) -> dict:
 
 
 def _photos_differ(old, new: dict) -> bool:
-    """A record of an older colmap-pvs has no ``content_sha256``: its names and sizes are compared."""
+    """A record of an older colmap-pvs has no ``content_sha256``: its names and sizes are compared.
+    Back-compat (dropped in 0.3): the markers in a user's workspace may be such a record."""
     if not isinstance(old, dict):
         return old != new
     key = "content_sha256" if "content_sha256" in old else "sha256"
@@ -259,6 +260,7 @@ def _photos_differ(old, new: dict) -> bool:
 
 
 #: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
+#: Back-compat (dropped in 0.3): the stereo marker in a user's workspace may hold only these.
 LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
 
 

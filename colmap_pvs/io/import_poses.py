@@ -84,6 +84,7 @@ _NOT_MODEL_SETTINGS = ("output_path", "num_threads", "overwrite")
 #: refinement fits the noise (``benchmarks/RESULTS.md``, "``import-poses`` refines the focal length").
 MIN_IMAGES_TO_REFINE_FOCAL = 10
 #: What a record from before a setting existed means for it (the behaviour of that older version).
+#: Back-compat (dropped in 0.3): the ``import_poses.json`` beside a user's model may lack them.
 _SETTINGS_BEFORE_RECORDED = {"refine_focal_length": False}
 
 __all__ = [
