@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 
-# OpenMP's default busy-waiting made 2-thread torch runs 2-20x slower on a shared 2-core CPU.
+# OpenMP's default busy-waiting makes torch runs on a shared CPU much slower (benchmarks/RESULTS.md).
 # Set before torch is imported (the CLI is an entry point; the library itself never does this).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

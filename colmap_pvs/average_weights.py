@@ -28,9 +28,9 @@ from pathlib import Path
 
 import torch
 
-from .config import config_to_dict, save_config
+from .config import config_json_bytes, config_to_dict
 from .errors import CheckpointError, ConfigError
-from .io.files import file_sha256
+from .io.files import atomic_write_bytes, file_sha256
 from .model import PARAMETER_FREE_FIELDS, PVSNet, load_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
@@ -169,7 +169,7 @@ def average_weights(config: AverageWeightsConfig) -> Path:
         step=int(metas[base_index].get("step", 0)),
         extra={"averaged_from": recipe, "average_config": config_to_dict(resolved)},
     )
-    save_config(resolved, config_path(out), averaged_from=recipe)
+    atomic_write_bytes(config_path(out), config_json_bytes(resolved, averaged_from=recipe))
     logger.info(
         "averaged %d checkpoints (weights %s) into %s",
         len(paths),

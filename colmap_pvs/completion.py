@@ -1,9 +1,9 @@
 """Dense completion of a geometric map: the third stereo pass, ``NAME.filled.bin``.
 
-The geometric pass keeps the pixels that its sources confirm (on hololens-dev 66 % of them, 75 %
-within 5 % of the ground truth) and drops the rest, mostly untextured walls and cupboards where the
-network's photometric depth is wrong (26 % within 5 % there). The completion fills them in three steps,
-measured on hololens-dev (``benchmarks/RESULTS.md``):
+The geometric pass keeps the pixels that its sources confirm and drops the rest, mostly untextured
+walls and cupboards where the network's photometric depth is mostly wrong. The completion fills them in
+three steps, each kept because it made the completed maps more accurate (``benchmarks/RESULTS.md``, "A
+dense completion of the geometric maps" and the stops after it):
 
 1. **The other views' kept pixels** (:func:`splat_depths`). A pixel this view dropped is often kept
    by a source that saw it better; the sources' geometric maps are projected into the reference
@@ -12,8 +12,7 @@ measured on hololens-dev (``benchmarks/RESULTS.md``):
 2. **A robust plane per image segment** (:func:`segment_planes`). An untextured wall or door is a
    region between image edges whose known pixels lie on one plane; the region's plane, where it fits
    them, fills it without blending in the surface across its edge (the superpixel planes of
-   TAPA-MVS, Romanoni & Matteucci 2019). On hololens-dev this took the completion from 63.4 to 65.1 %
-   of pixels within 5 % (offset 1: 63.7 to 66.6 %).
+   TAPA-MVS, Romanoni & Matteucci 2019).
 3. **A plane fit of what is known** (:func:`complete_depth`) for the rest. Those regions are mostly
    planes whose textured borders are known, so a local plane fit in inverse depth extends the borders
    into the wall; planar-prior stereo (ACMP, Xu & Tao 2020) builds its prior from its reliable pixels
@@ -22,12 +21,12 @@ measured on hololens-dev (``benchmarks/RESULTS.md``):
 A completed depth needs support: a segment whose inliers cover under :data:`SEGMENT_MIN_SUPPORT` of
 its area, or a fitted pixel with under :data:`FIT_MIN_SUPPORT` known pixels around it
 (:func:`fit_support`), is *unsupported*; the stereo step writes the network's depth there with
-confidence 0, which ``fuse`` never fuses (on colmap-statue these pixels drew the background beyond the
-depth range as sheets and streaks).
+confidence 0, which ``fuse`` never fuses (fused, such pixels draw a background beyond the depth range
+as sheets and streaks: ``benchmarks/RESULTS.md``, "A completion that needs support").
 
 The stereo step hands these functions the *seeds* of the geometric pass as the kept pixels (those
-that 3 sources agree with within 2.5 %, ``stereo/seed_maps``: 67.1 -> 69.8 % within 5 % on
-hololens-dev, ``benchmarks/RESULTS.md``), of the reference and of its sources. Every kept pixel
+that 3 sources agree with within 2.5 %, ``stereo/seed_maps``; why strict seeds: ``benchmarks/RESULTS.md``,
+"Stop 28"), of the reference and of its sources. Every kept pixel
 stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the pixels the
 sources or the segment planes gave, then the fitted ones. The stereo step writes the result as
 ``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
@@ -59,7 +58,7 @@ SEGMENT_EDGE_THRESHOLDS = ((30, 90), (60, 180), (100, 300))
 SEGMENT_INLIER_RESIDUAL = 0.03
 
 #: Iterations of the robust plane fit: a least-squares start, two reweighted (L1-like) steps, then
-#: least squares on the inliers (on hololens-dev the inlier sets settle by about the ninth).
+#: least squares on the inliers (by then the inlier sets have settled: ``benchmarks/RESULTS.md``).
 SEGMENT_IRLS_STEPS = 9
 
 #: Known pixels a segment needs to give its plane, and the least fraction of them within
@@ -86,11 +85,11 @@ SEGMENT_MIN_SUPPORT = 0.05
 #: How far past the convex hull of its inliers a segment's plane reaches: the larger of this share of
 #: the image width and ``SEGMENT_REACH`` times the radius of the largest disc inside the segment. A
 #: compact region (a wall known along one side) is reached whole; a thin strip that a neighbouring
-#: object's pixels pin at one end (fern's corridor wall between two shelf edges, drawn at the fronds'
-#: depth) only near that end. The radius is the segment's largest (a strip joined to a wide region
-#: reaches as far as that region); distances are OpenCV's 3x3-mask approximations, and the image
-#: border counts as the segment's edge. A pixel out of reach is left to the coarser segmentations and
-#: the local fit.
+#: object's pixels pin at one end (a corridor wall between two shelf edges, drawn at a plant's depth:
+#: ``benchmarks/RESULTS.md``, "Fern's bar") only near that end. The radius is the segment's largest
+#: (a strip joined to a wide region reaches as far as that region); distances are OpenCV's 3x3-mask
+#: approximations, and the image border counts as the segment's edge. A pixel out of reach is left to
+#: the coarser segmentations and the local fit.
 SEGMENT_HULL_MARGIN = 0.03
 SEGMENT_REACH = 3.0
 
@@ -189,9 +188,9 @@ def plane_deviation(kept: np.ndarray, factor: int = 4, min_weight: float = 6.0) 
     ``1 / f`` of the kept pixels around it (inverse depth, as :func:`complete_depth`, at the scales
     :data:`DEVIATION_SIGMAS`); 0 where nothing is kept.
 
-    A kept pixel that stands off the surface its neighbours agree on is more often wrong: on
-    hololens-dev the geometric confidence weighted by ``exp(-deviation / 0.02)`` ranks errors better
-    (AbsRel of the 50 % most confident pixels 0.68 -> 0.64 of all, ``benchmarks/RESULTS.md``).
+    A kept pixel that stands off the surface its neighbours agree on is more often wrong: the geometric
+    confidence weighted by ``exp(-deviation / 0.02)`` ranks errors better (``benchmarks/RESULTS.md``,
+    "Geometric confidence with the plane deviation").
 
     On an exact plane it is below 0.5 % away from the borders of the kept region and the image, up
     to about 1.5 % at them (a border cell's mean sits off its centre, and the upsampling holds the
@@ -359,10 +358,11 @@ def segment_planes(
     the pixel lies within reach of the convex hull of the inliers (:data:`SEGMENT_HULL_MARGIN`,
     :data:`SEGMENT_REACH`: a thin strip pinned at one end takes its plane only near that end). A
     region that passes those tests but whose inliers cover less than :data:`SEGMENT_MIN_SUPPORT` of its
-    area gives no plane either, and its pixels are ``refused``, also for the coarser segmentations: on
-    colmap-statue the background beyond the depth range is such a region, whose few chance specks drew
-    sheets and streaks around the statue, and a coarser region merging it with the statue would give it
-    the statue's plane (``benchmarks/RESULTS.md``). The segmentations go from fine to coarse; a pixel
+    area gives no plane either, and its pixels are ``refused``, also for the coarser segmentations: a
+    background beyond the depth range is such a region, whose few chance specks would draw sheets and
+    streaks around the object in front, and a coarser region merging it with that object would give it
+    the object's plane (``benchmarks/RESULTS.md``, "A completion that needs support"). The segmentations
+    go from fine to coarse; a pixel
     takes the finest region that gives it a depth or refuses it.
     The coarsest one's regions (when there are at least two segmentations) can span two surfaces
     whose boundary shows only a weak edge (an occlusion edge of one colour), so there a pixel also

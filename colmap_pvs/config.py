@@ -4,7 +4,8 @@ Every step of the pipeline takes one frozen dataclass config. That dataclass is 
 single source of defaults: the CLI flags are generated from it
 (:func:`add_config_arguments`), dictionaries are checked against it
 (:func:`config_from_dict`, unknown keys are errors) and the resolved config is saved
-next to the outputs (:func:`save_config`) and inside every checkpoint.
+next to the outputs (the bytes of :func:`config_json_bytes`, written atomically by the step) and inside
+every checkpoint. This module imports nothing of the package but its errors.
 
 Supported field types: ``bool``, ``int``, ``float``, ``str``, ``pathlib.Path``,
 ``Literal[...]``, ``X | None`` of those, ``tuple[T, ...]`` of scalars and nested
@@ -14,7 +15,8 @@ that field), grouped under the nested field's ``metadata["title"]``; other neste
 through ``--config_file`` only. Mappings may use those flag names as keys as well as the nested
 form (:func:`config_from_dict`); a class may list options it no longer has in a ``REMOVED_OPTIONS``
 class attribute (flag name -> the value now fixed), which are then accepted with a warning when they
-hold that value.
+hold that value. Such an entry is kept only for a user's saved file, and its comment names the
+version that drops it (``tests/test_structure.py``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
 from .errors import ConfigError
-from .io.files import atomic_write_bytes
 
 C = TypeVar("C")
 logger = logging.getLogger(__name__)
@@ -355,21 +356,24 @@ def config_to_flags(cfg: Any) -> dict[str, Any]:
     return out
 
 
-def save_config(cfg: Any, path: str | os.PathLike, **extra: Any) -> Path:
-    """Save the resolved config as JSON (atomically). ``extra`` keys are stored beside it."""
+def config_json_bytes(cfg: Any, **extra: Any) -> bytes:
+    """The resolved config as the bytes of a JSON file (``extra`` keys stored beside it), for the step
+    to write next to its outputs with :func:`colmap_pvs.io.files.atomic_write_bytes`; read back by
+    :func:`load_config`."""
     payload = {"config_class": type(cfg).__name__, "config": config_to_dict(cfg)}
     payload.update({k: _jsonable(v) for k, v in extra.items()})
-    return atomic_write_bytes(path, (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode())
+    return (json.dumps(payload, indent=2, sort_keys=True) + "\n").encode()
 
 
 def load_config(cls: type[C], path: str | os.PathLike) -> C:
-    """Load a config saved by :func:`save_config` (or a plain JSON mapping; see :func:`read_config_file`)."""
+    """Load a config written as :func:`config_json_bytes` (or a plain JSON mapping; see
+    :func:`read_config_file`)."""
     return config_from_dict(cls, read_config_file(cls, path))
 
 
 def read_config_file(cls: type, path: str | os.PathLike, *, where: str | None = None) -> dict[str, Any]:
     """The nested values of ``cls`` a JSON config file sets: a mapping (field or flag names, nested
-    or not), or a file of :func:`save_config` whose optional ``"base"`` names, relative to it, a config
+    or not), or a file of :func:`config_json_bytes` whose optional ``"base"`` names, relative to it, a config
     file it changes (read first, this file's values merged over it), so a recorded variant holds only
     what differs. ``where`` names the file in errors (default: ``config file 'PATH'``)."""
     return _read_config_file(cls, Path(path), where, ())

@@ -18,7 +18,7 @@ import numpy as np
 def affine_row(m: np.ndarray, b: float, x: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
     """``m . x + b`` for one row ``m`` ``[3]`` of an affine map and the components ``x`` of ``[P]``
     points: an affine map of many points one output row at a time, without BLAS (whose threads stall
-    on thin matrices when the cores are busy: 4x slower alone, 40x on a loaded machine)."""
+    on thin matrices, the more so when the cores are busy: ``benchmarks/RESULTS.md``)."""
     return m[0] * x[0] + m[1] * x[1] + m[2] * x[2] + b
 
 

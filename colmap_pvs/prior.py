@@ -2,11 +2,12 @@
 
 The network's coarse planes are centred on a dense prior fitted to the SfM points (an affine fit in
 inverse depth, :func:`colmap_pvs.model.cost.affine_fill_inverse_depth`). Two uses of that prior after
-the network, both measured on hololens-dev (``benchmarks/RESULTS.md``):
+the network, both chosen by measurement (``benchmarks/RESULTS.md``, "The sparse prior as a second
+estimate"):
 
 - **No texture, no matching.** Where the image is flat (grey-level standard deviation under a few
-  levels), the cost volume is flat too and the network's depth is worse than the prior's (AbsRel
-  0.20 against 0.15 on the flattest fifth of the pixels). :func:`blend_with_prior` moves the depth
+  levels), the cost volume is flat too and the network's depth is worse than the prior's.
+  :func:`blend_with_prior` moves the depth
   towards the prior there, in log depth, by a weight that ramps with the texture
   (:func:`texture_weight`).
 - **Two estimates that agree.** The network matches pixels; the prior interpolates SfM points. Where

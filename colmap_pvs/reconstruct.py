@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Literal
 
 from .confidence import calibration_path, load_calibration
-from .config import check_threads, config_to_dict, replace_config, save_config
+from .config import check_threads, config_json_bytes, config_to_dict, replace_config
 from .errors import ConfigError, WorkspaceError
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, cached_file_hashes, file_sha256, files_state_sha256, remove_database
@@ -251,7 +251,8 @@ def _photos_fingerprint(hashes: dict[str, list]) -> dict:
 
 
 def _photos_differ(old, new: dict) -> bool:
-    """A record of an older colmap-pvs has no ``content_sha256``: its names and sizes are compared."""
+    """A record of an older colmap-pvs has no ``content_sha256``: its names and sizes are compared.
+    Back-compat (dropped in 0.3): the markers in a user's workspace may be such a record."""
     if not isinstance(old, dict):
         return old != new
     key = "content_sha256" if "content_sha256" in old else "sha256"
@@ -259,6 +260,7 @@ def _photos_differ(old, new: dict) -> bool:
 
 
 #: What the stereo stage recorded before it recorded every stereo setting (an older colmap-pvs).
+#: Back-compat (dropped in 0.3): the stereo marker in a user's workspace may hold only these.
 LEGACY_STEREO_KEYS = ("max_image_size", "num_views", "network_scale")
 
 
@@ -513,7 +515,7 @@ def reconstruct(config: ReconstructConfig) -> ReconstructResult:
     remove_orphan_temps(prog.markers)
     prog.markers.mkdir(exist_ok=True)
     atomic_write_bytes(prog.markers / PHOTO_HASHES, json.dumps(photos).encode())
-    save_config(config, root / "colmap_pvs_reconstruct.json")
+    atomic_write_bytes(root / "colmap_pvs_reconstruct.json", config_json_bytes(config))
     from .io.pycolmap_output import (  # pycolmap itself is imported only inside io/
         pycolmap_log_to_file,
     )

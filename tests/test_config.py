@@ -15,12 +15,13 @@ from colmap_pvs.config import (
     add_config_arguments,
     config_from_args,
     config_from_dict,
+    config_json_bytes,
     config_to_dict,
     load_config,
     replace_config,
-    save_config,
 )
 from colmap_pvs.errors import ConfigError
+from colmap_pvs.io.files import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,7 @@ def test_round_trip_and_frozen(tmp_path):
     with pytest.raises(FrozenInstanceError):
         cfg.count = 5  # type: ignore[misc]
     assert config_from_dict(Demo, config_to_dict(cfg)) == cfg
-    save_config(cfg, tmp_path / "c.json", note="x")
+    atomic_write_bytes(tmp_path / "c.json", config_json_bytes(cfg, note="x"))
     assert json.loads((tmp_path / "c.json").read_text())["note"] == "x"
     assert load_config(Demo, tmp_path / "c.json") == cfg
     assert not [p for p in tmp_path.iterdir() if p.suffix == ".tmp"]
@@ -126,7 +127,8 @@ def test_atomic_outputs_are_not_private(tmp_path):
 
 
 def test_load_config_reads_a_variant_over_its_base(tmp_path):
-    save_config(Demo(path=Path("p"), count=5, inner=Inner(width=4)), tmp_path / "base.json")
+    base = Demo(path=Path("p"), count=5, inner=Inner(width=4))
+    atomic_write_bytes(tmp_path / "base.json", config_json_bytes(base))
     (tmp_path / "variant.json").write_text(json.dumps(
         {"base": "base.json", "config_class": "Demo", "config": {"count": 6}}))
     assert load_config(Demo, tmp_path / "variant.json") == Demo(path=Path("p"), count=6, inner=Inner(width=4))

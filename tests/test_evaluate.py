@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from colmap_pvs import __version__, config
+from colmap_pvs import __version__
 from colmap_pvs.errors import ConfigError, ShapeError, WorkspaceError
 from colmap_pvs.evaluate import (
     STEREO_RECORD,
@@ -264,8 +265,9 @@ def test_metrics_json_is_written_atomically_with_config_version_and_checkpoint_h
     ckpt.write_bytes(b"weights")
     (ws / "stereo" / STEREO_RECORD).write_text(json.dumps({"checkpoint_used": str(ckpt), "config": {}}))
     written = []
-    real = config.atomic_write_bytes
-    monkeypatch.setattr(config, "atomic_write_bytes", lambda p, d: written.append(Path(p)) or real(p, d))
+    step = importlib.import_module("colmap_pvs.evaluate.depth")
+    real = step.atomic_write_bytes
+    monkeypatch.setattr(step, "atomic_write_bytes", lambda p, d: written.append(Path(p)) or real(p, d))
     m = evaluate_depth(EvaluateDepthConfig(ws, gt_dir, gt_scale=0.001))
     out = ws / "stereo" / "metrics.json"
     assert m.output_path == out and written == [out]

@@ -341,3 +341,60 @@ def test_stereo_help_lists_at_most_46_flags(capsys):
     assert exit_info.value.code == 0
     flags = re.findall(r"^\s+(?:-\w+, )?(--[\w.-]+)", capsys.readouterr().out, flags=re.MULTILINE)
     assert 0 < len(flags) <= 46, f"{len(flags)} flags: {flags}"
+
+
+#: What ``colmap_pvs.config`` (the config layer) may import of the package: the base layer's errors.
+CONFIG_IMPORTS_ALLOWED = {"colmap_pvs.errors"}
+
+
+def test_the_config_layer_imports_only_the_errors():
+    found = [f"colmap_pvs.config imports {i.target}, line {i.line}" for i in _graph()["colmap_pvs.config"]
+             if i.target not in CONFIG_IMPORTS_ALLOWED]
+    assert not found, "\n".join(found)
+
+
+#: Names of the back-compat entries (what a user's saved file from an older version needs): each is
+#: preceded by a comment that says ``Back-compat (dropped in X.Y)``. Remove a name once it is dropped.
+BACK_COMPAT_NAMES = {"REMOVED_OPTIONS", "FIXED_SETTINGS", "RETIRED_FIELDS", "ABSENT_FIELDS",
+                     "_SETTINGS_BEFORE_RECORDED", "LEGACY_STEREO_KEYS", "_UNTAGGED"}
+_BACK_COMPAT = re.compile(r"back-?compat", re.IGNORECASE)
+_DROPPED_IN = re.compile(r"Back-compat \(dropped in (\d+)\.(\d+)\)")
+
+
+def _drop_version_problem(text: str, where: str) -> str | None:
+    """Why ``text`` (a comment or docstring) does not name a later version that drops it, or None."""
+    from colmap_pvs import __version__
+
+    match = _DROPPED_IN.search(text)
+    if match is None:
+        return f"{where}: no 'Back-compat (dropped in X.Y)'"
+    if (int(match[1]), int(match[2])) <= tuple(int(p) for p in __version__.split(".")[:2]):
+        return f"{where}: dropped in {match[1]}.{match[2]}, not after this version {__version__}"
+    return None
+
+
+def test_every_back_compat_entry_names_the_version_that_drops_it():
+    problems, found = [], set()
+    for module, path in LIBRARY_FILES.items():
+        source = path.read_text(encoding="utf-8")
+        lines = source.splitlines()
+        for line_no, line in enumerate(lines, 1):  # every mention is the phrase, with a later version
+            for mention in _BACK_COMPAT.finditer(line):
+                problem = _drop_version_problem(line[mention.start():], f"{module}:{line_no}")
+                if problem:
+                    problems.append(problem)
+        for node in ast.walk(ast.parse(source)):
+            targets = node.targets if isinstance(node, ast.Assign) else [getattr(node, "target", None)]
+            for target in targets:
+                if not (isinstance(target, ast.Name) and target.id in BACK_COMPAT_NAMES):
+                    continue
+                found.add(target.id)
+                above, n = [], node.lineno - 2
+                while n >= 0 and lines[n].strip().startswith("#"):
+                    above.insert(0, lines[n].strip().lstrip("#:").strip())
+                    n -= 1
+                problem = _drop_version_problem(" ".join(above), f"{module}:{node.lineno} {target.id}")
+                if problem:
+                    problems.append(problem)
+    assert not problems, "\n".join(problems)
+    assert found == BACK_COMPAT_NAMES, f"not found (dropped? remove them here): {BACK_COMPAT_NAMES - found}"

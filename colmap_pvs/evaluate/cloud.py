@@ -37,8 +37,9 @@ from typing import Literal
 import numpy as np
 
 from .. import __version__
-from ..config import save_config
+from ..config import config_json_bytes
 from ..errors import ConfigError, ShapeError, WorkspaceError
+from ..io.files import atomic_write_bytes
 from .depth import check_thresholds
 
 logger = logging.getLogger(__name__)
@@ -310,12 +311,11 @@ def evaluate_cloud(config: EvaluateCloudConfig) -> CloudMetrics:
     )
     metrics.config = config
     metrics.output_path = out
-    save_config(
+    atomic_write_bytes(out, config_json_bytes(
         config,
-        out,
         colmap_pvs_version=__version__,
         metrics=metrics.to_json(),
         definition="ETH3D-style (all reconstruction points treated as observed) and DTU-style; "
         "see colmap_pvs.evaluate",
-    )
+    ))
     return metrics

@@ -37,9 +37,9 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..confidence import reliability
-from ..config import save_config
+from ..config import config_json_bytes
 from ..errors import ConfigError, MapFormatError, ShapeError, WorkspaceError
-from ..io.files import file_sha256
+from ..io.files import atomic_write_bytes, file_sha256
 from ..upsampling import resize_nearest
 
 logger = logging.getLogger(__name__)
@@ -598,15 +598,14 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
         sparsification=sparsification,
         calibration=calibration,
     )
-    save_config(
+    atomic_write_bytes(out, config_json_bytes(
         config,
-        out,
         colmap_pvs_version=__version__,
         checkpoint_used=ckpt,
         checkpoint_sha256=sha,
         stereo_run=stereo_info,
         metrics=metrics.to_json(),
-    )
+    ))
     logger.info(
         "evaluated %d image(s): coverage %.1f%%, MAE %.4g, AbsRel %.4g -> %s",
         len(per_image),

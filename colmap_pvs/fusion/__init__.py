@@ -63,11 +63,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import save_config
+from ..config import config_json_bytes
 from ..errors import MapFormatError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
 from ..io.colmap_tools import COLMAP_DEFAULTS, parse_colmap_options
-from ..io.files import make_temp_dir
+from ..io.files import atomic_write_bytes, make_temp_dir
 from ..io.maps import read_depth_map, read_normal_map
 from ..io.ply import commit_cloud_pair, read_point_cloud, vis_path_of
 from ..io.workspace import (
@@ -266,8 +266,8 @@ def fuse(config: FuseConfig) -> FuseResult:
     record_written_output(out, vis_path_of(out))
     result.num_images = len(names)
     result.seconds = time.perf_counter() - start
-    save_config(config, out.with_name(out.stem + CONFIG_SUFFIX), num_points=result.num_points,
-                inputs_sha256=inputs_sha256)
+    atomic_write_bytes(out.with_name(out.stem + CONFIG_SUFFIX),
+                       config_json_bytes(config, num_points=result.num_points, inputs_sha256=inputs_sha256))
     logger.info(
         "fusion: %d points from %d images in %.1f s -> %s", result.num_points, len(names), result.seconds, out
     )

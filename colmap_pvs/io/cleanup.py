@@ -5,7 +5,8 @@ Every temporary output of colmap-pvs is named ``.NAME.pvs-HOST-PID.XXXXXXXX.tmp`
 process). One is an *orphan*, and is removed, when its process no longer runs on this host, or when
 it is older than ``max_age_s`` (a process on another host sharing the folder, e.g. a Ray worker,
 is never interrupted: its files are only removed once they are that old). Untagged temporaries of
-older versions (``.NAME.XXXXXXXX.tmp``) are removed once older than ``max_age_s`` too. Backups of
+older versions (``.NAME.XXXXXXXX.tmp``) are removed once older than ``max_age_s`` too
+(:data:`_UNTAGGED`). Backups of
 replaced folders (``.NAME.old.*``) are never touched.
 """
 
@@ -25,6 +26,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["remove_orphan_temps"]
 
 _TAGGED = re.compile(r"^\..+\.pvs-(?P<host>[0-9a-f]{8})-(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp$")
+#: A temporary of an older colmap-pvs, before they were tagged. Back-compat (dropped in 0.3): a killed
+#: run of that version may have left them in a user's workspace.
 _UNTAGGED = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp$")
 DEFAULT_MAX_AGE_S = 24 * 3600.0
 

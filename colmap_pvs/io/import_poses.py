@@ -12,9 +12,9 @@ The focal lengths are refined by default where every camera has at least
 the principal point and the other intrinsics held fixed, as ``point_triangulator
 --refine_intrinsics 1`` with COLMAP's default ``--Mapper.ba_refine_focal_length 1``): with the poses
 fixed a focal length that is off by 1 % scales every triangulated depth, and so every dense depth, by
-about 1 %. On ``hololens-dev`` the focal lengths of its ``K.txt`` move by -0.84 / -0.60 % (fx / fy) and
-every kind of depth map gets more accurate (``benchmarks/RESULTS.md``). The change is logged, and warned
-about above 5 %.
+about 1 %. A tracked headset's calibrated focal lengths can be off by that much, and refining them
+makes every kind of depth map more accurate (``benchmarks/RESULTS.md``, "``import-poses`` refines the
+focal length with the poses fixed"). The change is logged, and warned about above 5 %.
 
 Input formats (``format``):
 
@@ -38,16 +38,15 @@ Pixel convention: COLMAP's (pixel ``(c, r)`` has its centre at ``(c + 0.5, r + 0
 principal point given in the "centre at 0" convention must be shifted by ``+0.5``:
 ``principal_point_offset`` does that; by default it is ``0.5`` for ``strecha`` (the Strecha
 files, and the downscaling ``c' = (c + 0.5) s - 0.5`` used for ``../shared/data/fountain-P11``,
-use the centre-at-0 convention; measured on fountain-P11 the median reprojection error drops
-from 0.161 to 0.152 px with the shift) and ``0`` for the other formats.
+use the centre-at-0 convention; the shift lowers their median reprojection error:
+``benchmarks/RESULTS.md``) and ``0`` for the other formats.
 
 Rotations are re-orthonormalised (nearest rotation, SVD) because text files store them
 rounded; the stored pose then differs from the input by the rounding only (~1e-6).
 
 SIFT runs with a lower peak threshold than COLMAP's (``sift_peak_threshold`` 0.002 instead of
 0.0067): with the poses known, every extra match that survives triangulation is a depth hint for
-the network. Measured on ``hololens-dev`` (178 frames): 1174 -> 1932 keypoints per frame, 15,181 ->
-23,136 points, and the depth maps of ``benchmarks/hololens_quick.py`` improve (``benchmarks/RESULTS.md``).
+the network, and the depth maps improve (``benchmarks/RESULTS.md``, "Stop 25: denser SfM hints").
 
 The settings that shape the model are recorded in ``output_path/import_poses.json``; a rerun reuses
 the model only when they match, and otherwise refuses (or, with ``overwrite``, recomputes).
@@ -68,10 +67,10 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import check_threads, config_to_dict, save_config
+from ..config import check_threads, config_json_bytes, config_to_dict
 from ..errors import ConfigError, WorkspaceError
 from .features import extract_features, match_features, resolve_matcher
-from .files import make_temp_dir, remove_database
+from .files import atomic_write_bytes, make_temp_dir, remove_database
 from .images import read_image_size
 from .sparse import replace_directory
 
@@ -81,10 +80,11 @@ logger = logging.getLogger(__name__)
 SETTINGS_FILENAME = "import_poses.json"
 #: Config fields that do not change the model (everything else does).
 _NOT_MODEL_SETTINGS = ("output_path", "num_threads", "overwrite")
-#: Fewest images of a camera for ``refine_focal_length`` to move its focal lengths: on fewer frames of
-#: hololens-dev the refinement fits the noise (``benchmarks/RESULTS.md``).
+#: Fewest images of a camera for ``refine_focal_length`` to move its focal lengths: on fewer frames the
+#: refinement fits the noise (``benchmarks/RESULTS.md``, "``import-poses`` refines the focal length").
 MIN_IMAGES_TO_REFINE_FOCAL = 10
 #: What a record from before a setting existed means for it (the behaviour of that older version).
+#: Back-compat (dropped in 0.3): the ``import_poses.json`` beside a user's model may lack them.
 _SETTINGS_BEFORE_RECORDED = {"refine_focal_length": False}
 
 __all__ = [
@@ -603,8 +603,8 @@ def import_poses(config: ImportPosesConfig) -> Path:
     for journal in (f"{final_db}-wal", f"{final_db}-shm"):  # the old database's; os.replace swaps the file
         Path(journal).unlink(missing_ok=True)
     os.replace(db_path, final_db)
-    save_config(config, out / SETTINGS_FILENAME, model_settings=_model_settings(config),
-                focal_lengths_refined=refine)
+    atomic_write_bytes(out / SETTINGS_FILENAME, config_json_bytes(
+        config, model_settings=_model_settings(config), focal_lengths_refined=refine))
     if refine:
         _log_focal_changes(given, result)
     t3 = time.perf_counter()

@@ -25,13 +25,15 @@ _RESERVED = ("format", "model_config", "state_dict", "step")
 #: value every recorded config gives it. Checkpoints and stereo provenance written by 0.1 hold them:
 #: :func:`stored_config` writes them back, so the provenance of maps made by 0.1 still matches (they are
 #: not recomputed) and a checkpoint is still read by 0.1; a stored config's are dropped when read.
-#: Drop in 0.3 (a workspace made before then recomputes its photometric maps once).
+#: Back-compat (dropped in 0.3): a user's checkpoints and maps' provenance hold them (after 0.3 a
+#: workspace made before then recomputes its photometric maps once).
 RETIRED_FIELDS: dict[str, tuple[str, Any]] = {
     "guidance_mode": ("guidance_c", "cost"),
     "normalized_channels": ("prior_growth_radii", 0),
 }
 #: What a stored config written before these fields existed means (``pvsnet_v2.pt`` lacks them): off,
-#: not :class:`PVSNetConfig`'s default. Kept as long as a shipped checkpoint lacks them.
+#: not :class:`PVSNetConfig`'s default. Back-compat (dropped in 0.3): a user's checkpoints trained
+#: before the fields existed, and the shipped ``pvsnet_v2.pt`` (to be saved again with them by then).
 ABSENT_FIELDS: dict[str, Any] = {"frustum_weights": False, "stage_neighbourhood": 0}
 
 

@@ -38,7 +38,8 @@ class PVSNetConfig:
 
     #: Options that are gone, with the one value every recorded config gives them (accepted with a
     #: warning in a mapping, refused with another value; a checkpoint's are dropped silently:
-    #: :data:`RETIRED_FIELDS`).
+    #: :data:`RETIRED_FIELDS`). Back-compat (dropped in 0.3): a model or training config file a user
+    #: wrote may set them.
     REMOVED_OPTIONS: ClassVar[dict[str, object]] = {"guidance_mode": "cost", "normalized_channels": 0}
 
     feature_channels: tuple[int, ...] = field(

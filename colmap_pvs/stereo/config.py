@@ -38,7 +38,8 @@ _RUN = {"run_only": True}
 PRIOR_BLEND_WINDOW = 7
 #: Settings that are no longer options but that a pass's maps still depend on, with their value: each
 #: stays in its pass's provenance under its old flag name, before the flag named second (``None``: at
-#: the end), so that the maps made while they were options stay current.
+#: the end), so that the maps made while they were options stay current. Back-compat (dropped in 0.3):
+#: the provenance of the maps in a user's workspace holds them (after 0.3 those passes rerun once).
 FIXED_SETTINGS: dict[str, list[tuple[str, str | None, object]]] = {
     "photometric": [("prior_blend_window", "prior_agreement_scale", PRIOR_BLEND_WINDOW)],
     "geometric": [("geom_max_normal_error", "geom_min_visibility", 180.0)],  # the normal check: off
@@ -305,6 +306,7 @@ class StereoConfig:
     ray: RayConfig = _section(RayConfig, "ray_", "Ray backend (--backend ray)", run_only=True)
 
     #: Options that are gone, with the value they now always have (accepted with a warning).
+    #: Back-compat (dropped in 0.3): a config file a user wrote or a saved stereo config may set them.
     REMOVED_OPTIONS: ClassVar[dict[str, object]] = {
         "wide_sources": 0, "adapt_seed": 0,
         **{name: value for fixed in FIXED_SETTINGS.values() for name, _, value in fixed},

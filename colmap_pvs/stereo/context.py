@@ -144,8 +144,8 @@ def drop_outlier_hints(sparse: np.ndarray, depth_range: tuple[float, float]) -> 
     A hint is an outlier when ``z < dmin / f`` or ``z > dmax * f`` with ``f`` =
     :data:`HINT_OUTLIER_FACTOR` (the range already carries COLMAP's 25 % stretch). Hints just outside
     the range are real surfaces more often than not (the range is the 1st-99th percentile, and near
-    walls in indoor video lie below it): dropping every hint outside it raised hololens-dev MAE from
-    212 to 219 mm.
+    walls in indoor video lie below it): dropping every hint outside it made the maps less accurate
+    (``benchmarks/RESULTS.md``, "Numbers moved out of the code").
     """
     f = HINT_OUTLIER_FACTOR
     sparse[(sparse < depth_range[0] / f) | (sparse > depth_range[1] * f)] = 0.0

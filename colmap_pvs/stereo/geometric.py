@@ -74,8 +74,9 @@ def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
     :attr:`~colmap_pvs.consistency.ConsistencyResult.parallax`; ``None``: full), times a factor for
     how far the pixel stands off the local plane of the kept pixels around it (``deviation`` ``e``
     ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0). A source with little
-    parallax agrees with almost any depth, so its agreement says less. Chosen by measurement on
-    hololens-dev (``benchmarks/RESULTS.md``): the weighted fraction ranks errors better than the
+    parallax agrees with almost any depth, so its agreement says less. Chosen by measurement
+    (``benchmarks/RESULTS.md``, "Geometric confidence with the plane deviation" and the entries
+    before it): the weighted fraction ranks errors better than the
     network's probability mass (which does not rank the consistent pixels at all), the agreement
     count alone, or the reprojection and depth errors; the deviation factor and the parallax weight
     rank them better still.

@@ -11,9 +11,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..config import save_config
+from ..config import config_json_bytes
 from ..errors import ConfigError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
+from ..io.files import atomic_write_bytes
 from ..io.workspace import write_fusion_cfg
 from ..model import stored_config
 from .config import CONFIG_FILENAME, Stage, StereoConfig
@@ -103,8 +104,9 @@ def run_local(config: StereoConfig, weights: Path | None = None) -> StereoResult
         ctx = prepare_stereo(config, background_io=True, weights=weights)
         ws = ctx.workspace
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # what a killed run left behind
-    save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=str(ctx.checkpoint_path),
-                checkpoint_sha256=ctx.checkpoint_sha256, model_config=stored_config(ctx.net.config))
+    atomic_write_bytes(ws.stereo_dir / CONFIG_FILENAME, config_json_bytes(
+        config, checkpoint_used=str(ctx.checkpoint_path), checkpoint_sha256=ctx.checkpoint_sha256,
+        model_config=stored_config(ctx.net.config)))
     result = StereoResult(workspace=ws)
     result.timings["prepare"] = wall.steps["prepare"]
     outcomes: list[RefOutcome] = []

@@ -65,7 +65,8 @@ def cascade_confidence(out, output_scales: tuple[int, ...]) -> torch.Tensor:
     scale), times ``exp(-|log(d / d_prev)| / STAGE_AGREEMENT_SCALE)`` with ``d_prev`` the previous
     cascade stage's depth (both bilinearly upsampled; a network without a cascade: its mass alone).
     The stages see the cost at different resolutions, so where they disagree the depth is often
-    wrong (chosen on hololens-dev offset 0 and checked on offset 1: ``benchmarks/RESULTS.md``)."""
+    wrong (chosen on one frame set and checked on another: ``benchmarks/RESULTS.md``, "A photometric
+    score from the whole cascade")."""
     conf = out.confidence
     staged = out.confidences is not None and len(output_scales) == len(out.depths) == len(out.confidences)
     if not staged or len(out.depths) < 2 or output_scales[-1] == max(output_scales):

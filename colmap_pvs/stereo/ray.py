@@ -41,9 +41,10 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .. import __version__
-from ..config import replace_config, save_config
+from ..config import config_json_bytes, replace_config
 from ..errors import CheckpointError, ColmapPVSError, DistributedError, WorkspaceError
 from ..io.cleanup import remove_orphan_temps
+from ..io.files import atomic_write_bytes
 from ..io.workspace import Workspace, write_fusion_cfg
 from ..model import stored_config
 from ..views import reference_sources
@@ -535,8 +536,9 @@ def run_stereo_ray(config: StereoConfig, weights: Path | None = None) -> Distrib
         ws = Workspace(driver.wcfg.workspace_path)
         if not ws.stereo_dir.is_dir():
             raise WorkspaceError(f"the Ray driver cannot see {str(ws.stereo_dir)!r}; {SHARED_FS_HINT}")
-        save_config(config, ws.stereo_dir / CONFIG_FILENAME, checkpoint_used=plan["checkpoint"],
-                    checkpoint_sha256=plan["checkpoint_sha256"], model_config=plan["model_config"])
+        atomic_write_bytes(ws.stereo_dir / CONFIG_FILENAME, config_json_bytes(
+            config, checkpoint_used=plan["checkpoint"], checkpoint_sha256=plan["checkpoint_sha256"],
+            model_config=plan["model_config"]))
         remove_orphan_temps(ws.stereo_dir, recursive=True)  # e.g. from a run whose driver was killed
         refs: list[str] = plan["references"]
         if plan.get("patch_match_note"):

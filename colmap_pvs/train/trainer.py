@@ -2,7 +2,7 @@
 
 Run folder (``TrainConfig.output_dir``):
 
-- ``config.json``: the resolved :class:`TrainConfig` (:func:`colmap_pvs.config.save_config`);
+- ``config.json``: the resolved :class:`TrainConfig` (:func:`colmap_pvs.config.config_json_bytes`);
 - ``last.pt``: the full training state, written atomically every
   ``checkpoint_every_seconds`` / ``checkpoint_every_steps``, at the end and on
   SIGINT/SIGTERM. A :func:`colmap_pvs.model.save_checkpoint` file whose ``extra`` holds
@@ -55,8 +55,9 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from ..config import config_from_dict, config_to_dict, save_config
+from ..config import config_from_dict, config_json_bytes, config_to_dict
 from ..errors import CheckpointError, ColmapPVSError, ConfigError
+from ..io.files import atomic_write_bytes
 from ..model import PVSNet, load_checkpoint, save_checkpoint
 from .config import RESUMABLE_CHANGES, TrainConfig
 from .data import StepSampler, build_datasets
@@ -529,7 +530,7 @@ class Trainer:
         """
         cfg = self.config
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, self.output_dir / "config.json")
+        atomic_write_bytes(self.output_dir / "config.json", config_json_bytes(cfg))
         self._prepare_logs()
         end = cfg.steps if max_steps is None else min(cfg.steps, self.step + max_steps)
         handlers = {}
