@@ -18,6 +18,7 @@ from colmap_pvs.model import (
     save_checkpoint,
     stored_config,
 )
+from colmap_pvs.model.checkpoint import read_stored_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -155,3 +156,6 @@ def test_a_config_stored_before_a_field_existed_means_it_off():
     assert "frustum_weights" not in stored and "stage_neighbourhood" not in stored
     config = load_checkpoint(WEIGHTS / "pvsnet_v2.pt")[0].config
     assert (config.frustum_weights, config.stage_neighbourhood) == (False, 0)
+    # a checkpoint saved before the sparse prior existed ran without it (the default is now on)
+    older = {k: v for k, v in stored.items() if k not in ("sparse_prior", "prior_halfwidth")}
+    assert read_stored_config(older).sparse_prior is False

@@ -317,14 +317,26 @@ def test_resume_accepts_a_checkpoint_written_before_a_field_existed(tmp_path: Pa
 
 
 def test_recorded_training_configs_keep_their_model() -> None:
-    """``train`` builds ``TRAIN_MODEL`` where a config is silent, not the shipped model (``PVSNetConfig()``):
-    a recorded config's partial ``model`` mapping (written before ``frustum_weights`` and
-    ``stage_neighbourhood`` existed, with the retired ``guidance_mode``) keeps its meaning."""
-    from colmap_pvs.model import PVSNetConfig
-    from colmap_pvs.train.config import TRAIN_MODEL
+    """``train`` builds the shipped model (``PVSNetConfig()``) where a config is silent, so a recorded
+    config (``benchmarks/configs``, the weights' ``*.train_config.json``) states its whole model, or
+    inherits it from its ``base``: its meaning never follows a changed default."""
+    import dataclasses
+    import json
 
-    assert TrainConfig().model == TRAIN_MODEL != PVSNetConfig()
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "configs" / "plant_scratch.train_config.json"
-    model = load_config(TrainConfig, path).model
+    from colmap_pvs.model import PVSNetConfig
+
+    assert TrainConfig().model == PVSNetConfig()
+    root = Path(__file__).resolve().parents[1]
+    fields = {f.name for f in dataclasses.fields(PVSNetConfig)}
+    recorded = sorted([*(root / "benchmarks" / "configs").glob("*.json"),
+                       *(root / "colmap_pvs" / "weights").glob("*.train_config.json")])
+    assert len(recorded) >= 10
+    for path in recorded:
+        data = json.loads(path.read_text())
+        model = data["config"].get("model")
+        assert model is not None or "base" in data, path.name
+        if model is not None:
+            assert set(model) == fields, (path.name, fields ^ set(model))
+    model = load_config(TrainConfig, root / "benchmarks" / "configs" / "plant_scratch.train_config.json").model
     assert (model.frustum_weights, model.stage_neighbourhood, model.sparse_prior) == (False, 0, False)
     assert model.feature_channels == (16, 8, 8)  # what the file says

@@ -31,10 +31,11 @@ RETIRED_FIELDS: dict[str, tuple[str, Any]] = {
     "guidance_mode": ("guidance_c", "cost"),
     "normalized_channels": ("prior_growth_radii", 0),
 }
-#: What a stored config written before these fields existed means (``pvsnet_v2.pt`` lacks them): off,
-#: not :class:`PVSNetConfig`'s default. Back-compat (dropped in 0.3): a user's checkpoints trained
-#: before the fields existed, and the shipped ``pvsnet_v2.pt`` (to be saved again with them by then).
-ABSENT_FIELDS: dict[str, Any] = {"frustum_weights": False, "stage_neighbourhood": 0}
+#: What a stored config written before these fields existed means (``pvsnet_v2.pt`` lacks the first two):
+#: off, not :class:`PVSNetConfig`'s default. The rule: every field added after the first checkpoint
+#: whose default is not what its absence meant. Back-compat (dropped in 0.3): a user's checkpoints
+#: trained before the fields existed, and the shipped ``pvsnet_v2.pt`` (to be saved again with them by then).
+ABSENT_FIELDS: dict[str, Any] = {"frustum_weights": False, "stage_neighbourhood": 0, "sparse_prior": False}
 
 
 def stored_config(config: PVSNetConfig) -> dict[str, Any]:

@@ -45,22 +45,6 @@ RESUMABLE_CHANGES = frozenset(
 )
 
 
-#: The network ``train`` builds where a config does not say otherwise: wider than the shipped model
-#: (``PVSNetConfig()``), without its sparse switches, frustum weights and stage neighbourhood (what
-#: ``PVSNetConfig()`` was before it became the shipped model). A training config's partial ``model``
-#: mapping is merged into it, so recorded configs (``benchmarks/configs``) keep their meaning.
-TRAIN_MODEL = PVSNetConfig(
-    feature_channels=(32, 16, 8),
-    planes_per_stage=(32, 16, 8),
-    groups_per_stage=(8, 8, 8),
-    visibility_channels=8,
-    frustum_weights=False,
-    stage_neighbourhood=0,
-    sparse_guidance=False,
-    sparse_prior=False,
-)
-
-
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that defines a training run. Saved as ``output_dir/config.json`` and in checkpoints."""
@@ -75,7 +59,7 @@ class TrainConfig:
             "help": "training data: procedural synthetic scenes, or an MVSNet-format folder (DTU/BlendedMVS)"
         },
     )
-    model: PVSNetConfig = field(default=TRAIN_MODEL, metadata={"help": "network architecture"})
+    model: PVSNetConfig = field(default_factory=PVSNetConfig, metadata={"help": "network architecture"})
     data: SyntheticDatasetConfig = field(
         default_factory=SyntheticDatasetConfig, metadata={"help": "synthetic dataset (dataset=synthetic)"}
     )
