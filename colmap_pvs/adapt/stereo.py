@@ -93,7 +93,7 @@ def run_adapted_stereo(config: StereoConfig) -> StereoResult:
     logger.info("test-time adaptation: %d steps, %.1f s (%s)", done.steps, done.seconds,
                 "reused" if done.reused else "computed")
     result = run_stereo(config, weights=done.checkpoint)
-    result.adapt_seconds = done.seconds + first_round
+    result.adapt_seconds = result.timings["adapt"] = done.seconds + first_round
     count = len(result.processed) + len(result.already_done) + len(result.skipped)
     result.adapt_seconds_per_image = result.adapt_seconds / max(1, count)
     return result

@@ -82,7 +82,8 @@ def _load_view(config: FuseConfig, ws: Workspace, model: SparseModel, name: str)
         np.float32
     )
     conf_path = ws.confidence_map_path(name, config.input_type)
-    if not conf_path.is_file() and config.input_type != "filled":  # maps from before per-kind files
+    if not conf_path.is_file() and config.input_type != "filled":
+        # Back-compat (dropped in 0.3): a workspace whose maps were made before per-kind confidence files
         conf_path = ws.confidence_map_path(name)
     filled = config.input_type == "filled"  # its confidence 0 marks the unsupported pixels
     if filled and not conf_path.is_file():

@@ -121,7 +121,8 @@ class Workspace:
 
     def confidence_map_path(self, name: str, kind: str | None = None) -> Path:
         """``stereo/confidence_maps/NAME.KIND.bin``: colmap-pvs's per-pixel confidence in ``[0, 1]`` of
-        the ``kind`` maps (COLMAP ignores this folder); ``kind=None``: the legacy ``NAME.bin``."""
+        the ``kind`` maps (COLMAP ignores this folder); ``kind=None``: ``NAME.bin``, the one confidence
+        map of every kind that older workspaces hold (Back-compat (dropped in 0.3): fusion reads it)."""
         if kind is None:
             return self.stereo_dir / "confidence_maps" / f"{_check_image_name(name)}.bin"
         return self._map_path(self.stereo_dir / "confidence_maps", name, kind)

@@ -1,7 +1,7 @@
 """Convolution building blocks tuned for CPU inference and training.
 
 PyTorch routes a float32 CPU convolution to oneDNN (fast) or to its native im2col
-kernels (often 5-30x slower for the thin 3D cost volumes used here) by a size
+kernels (several times slower for the thin 3D cost volumes used here) by a size
 heuristic: oneDNN is used when ``groups > 1`` or ``batch > 1`` or
 ``B * C * D * H > 20480``. For a small input with batch 1 we therefore compute the
 *same* dense convolution as a 2-group convolution of the input concatenated with
@@ -133,7 +133,7 @@ class Up3d(nn.Module):
     """U-Net decoder step: 1x1x1 Conv3d + BN + ReLU at the coarse scale, then trilinear x2 upsampling.
 
     ``[B, Cin, D, h, w] -> [B, Cout, 2D, 2h, 2w]`` (``align_corners=False``: voxel centres stay at
-    ``i + 0.5``). Used instead of a stride-2 transposed convolution, which is 4-10x slower on CPU.
+    ``i + 0.5``). Used instead of a stride-2 transposed convolution, which is several times slower on CPU.
     """
 
     def __init__(self, cin: int, cout: int) -> None:
@@ -167,7 +167,7 @@ def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     for a in range(0, h, rows):
         b = min(h, a + rows)
         lo, hi = max(0, a - 1), min(h, b + 1)
-        # A contiguous copy of the (small) input band: interpolation of a strided view is ~2x slower.
+        # A contiguous copy of the (small) input band: interpolation of a strided view is slower.
         band = x[:, :, :, lo:hi].contiguous(memory_format=_memory_format(x))
         up = F.interpolate(band, scale_factor=2.0, mode="trilinear", align_corners=False)
         off = 2 * (a - lo)

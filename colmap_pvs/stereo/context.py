@@ -52,7 +52,7 @@ class StereoResult:
     the dense completion's (``geom_fill``), ``confirm_*`` its confirmation's; ``timings`` sums seconds per
     stage over the passes;
     ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
-    per computed reference. ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
+    per computed reference (this run's: a test-time adaptation before it is ``adapt_seconds``). ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
     lists a subset) and got photometric maps for the geometric pass. ``adapt_seconds`` (in all and per
     reference) is the time the step above that made the run's ``weights`` took (0 without one).
     """
