@@ -50,11 +50,11 @@ class StereoResult:
     ``processed`` / ``already_done`` are the photometric pass's, ``geometric_processed`` /
     ``geometric_done`` the geometric pass's, ``filled_processed`` / ``filled_done`` / ``filled_skipped``
     the dense completion's (``geom_fill``), ``confirm_*`` its confirmation's; ``timings`` sums seconds per
-    stage over the passes;
-    ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is the whole run's wall time
-    per computed reference (this run's: a test-time adaptation before it is ``adapt_seconds``). ``auxiliary`` lists the sources that are no reference (``patch-match.cfg``
-    lists a subset) and got photometric maps for the geometric pass. ``adapt_seconds`` (in all and per
-    reference) is the time the step above that made the run's ``weights`` took (0 without one).
+    stage over the passes; ``pass_seconds`` is the wall time of each pass; ``seconds_per_image`` is this
+    run's wall time per computed reference. ``auxiliary`` lists the sources that are no reference
+    (``patch-match.cfg`` lists a subset) and got photometric maps for the geometric pass.
+    ``adapt_seconds`` (in all and per reference; also ``timings["adapt"]``) is the time the step above
+    that made the run's ``weights`` took (0 without one), which this run's other times leave out.
     """
 
     workspace: Workspace
