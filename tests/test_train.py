@@ -337,6 +337,7 @@ def test_recorded_training_configs_keep_their_model() -> None:
         assert model is not None or "base" in data, path.name
         if model is not None:
             assert set(model) == fields, (path.name, fields ^ set(model))
-    model = load_config(TrainConfig, root / "benchmarks" / "configs" / "plant_scratch.train_config.json").model
+    plant = root / "benchmarks" / "configs" / "plant_scratch.train_config.json"
+    model = load_config(TrainConfig, plant).model
     assert (model.frustum_weights, model.stage_neighbourhood, model.sparse_prior) == (False, 0, False)
     assert model.feature_channels == (16, 8, 8)  # what the file says
