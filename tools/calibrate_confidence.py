@@ -52,7 +52,8 @@ from colmap_pvs.evaluate.depth import find_gt_depth, read_gt_depth
 from colmap_pvs.io.maps import read_array, read_depth_map
 from colmap_pvs.io.workspace import detect_workspace
 from colmap_pvs.stereo.config import CONFIG_FILENAME
-from colmap_pvs.stereo.outputs import confirm_map_path, read_provenance
+from colmap_pvs.stereo.outputs import read_provenance
+from colmap_pvs.stereo.reference import confirm_map_path
 from colmap_pvs.upsampling import resize_nearest
 
 logger = logging.getLogger("calibrate_confidence")
