@@ -506,7 +506,7 @@ def test_geometric_check_refuses_a_normal_map_of_another_size(analytic_scene, tm
     ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_consistency=True))
     try:
         with pytest.raises(MapFormatError, match=r"is \(60, 80\) but its depth map is \(120, 160\)"):
-            stereo_geometric.load_maps(ctx, ref)
+            stereo_geometric.load_maps(ctx, ctx.reference(ref))
     finally:
         ctx.close()
 
@@ -995,11 +995,12 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
         maps = PassMaps(depth, conf, normals)
         ref = Reference.of(ws, "a.png", depth_range=(1.0, 3.0))
         ref = ref.with_pass(stage, maps, PassRecord(settings, {}))
-        stereo_outputs.write_pass(ref, stage, previews=False, timer=Timer())
+        stereo_outputs.write_pass(ref, previews=False, timer=Timer())
 
     old, new = {"v": 1}, {"v": 2}
     write(old)
-    assert stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
+    out = Reference.of(ws, "a.png").paths[stage]
+    assert stereo_outputs.is_current(out, stereo_outputs.fingerprint(old), (8, 6))
 
     import os
 
@@ -1014,8 +1015,8 @@ def test_rewritten_pass_interrupted_before_its_depth_is_not_done(tmp_path, monke
     with pytest.raises(OSError):
         write(new)
     assert stereo_outputs.read_provenance(ws, "a.png", stage)["settings"] == new  # renamed before it
-    assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(new), (8, 6))
-    assert not stereo_outputs.is_current(ws, "a.png", stage, stereo_outputs.fingerprint(old), (8, 6))
+    assert not stereo_outputs.is_current(out, stereo_outputs.fingerprint(new), (8, 6))
+    assert not stereo_outputs.is_current(out, stereo_outputs.fingerprint(old), (8, 6))
 
 
 def test_select_views_wide_sources_reach_stereo_through_patch_match_cfg(analytic_scene, tmp_path,

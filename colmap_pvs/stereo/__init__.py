@@ -40,9 +40,10 @@ One module per pass: :mod:`.photometric`, :mod:`.geometric`, :mod:`.filled` (the
 :mod:`.confirm`; their
 settings in :mod:`.config` (one nested config per pass), what they share in :mod:`.context` (workspace,
 network, image cache), :mod:`.outputs` (provenance, writers) and :mod:`.network`; the backends
-in :mod:`.local` and :mod:`.ray`; :func:`run_stereo` (:mod:`.run`) picks one. A pass computes one
-:class:`~.reference.Reference` (:mod:`.reference`: the reference's paths, its maps and the record that
-made them) and hands it to its writer (:func:`~.outputs.write_pass`); it times its steps with a
+in :mod:`.local` and :mod:`.ray`; :func:`run_stereo` (:mod:`.run`) picks one. Each image has one
+:class:`~.reference.Reference` per run (:mod:`.reference`, ``StereoContext.reference``: its paths),
+through which a pass reads its inputs; it adds its maps and the record that made them
+(``Reference.with_pass``) and hands it to its writer (:func:`~.outputs.write_pass`); it times its steps with a
 :class:`~.timing.Timer` (:mod:`.timing`), which ``StereoResult.timings`` sums. Python users call
 :func:`run_stereo`, or :func:`prepare_stereo` once and then :func:`process_reference` per reference
 and pass. The network is the checkpoint's, or other ``weights`` the caller gives: the ``stereo``

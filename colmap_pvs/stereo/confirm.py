@@ -27,18 +27,8 @@ from .config import FORMAT_VERSIONS
 from .context import RefOutcome, StereoContext
 from .filled import current_geometric_provenance
 from .geometric import load_maps
-from .outputs import (
-    change_reason,
-    confirm_map_path,
-    confirm_provenance_path,
-    fingerprint,
-    pure_geometric,
-    read_json,
-    read_provenance,
-    remove_confirmed,
-    write_geometric,
-    write_json,
-)
+from .outputs import change_reason, fingerprint, pure_geometric, remove_confirmed, write_geometric, write_json
+from .reference import Reference, read_json
 from .timing import Timer
 
 #: Other references whose completions must agree with a completed pixel (``fuse``'s default).
@@ -48,25 +38,25 @@ CONFIRM_MAX_REPROJ_ERROR = 1.0
 CONFIRM_MAX_DEPTH_ERROR = 0.01
 
 
-def _supported_completion(ctx: StereoContext, name: str) -> tuple[SourceMaps, np.ndarray]:
-    """``name``'s completion with its supported pixels only (confidence above 0; 0 elsewhere), and its
+def _supported_completion(ctx: StereoContext, ref: Reference) -> tuple[SourceMaps, np.ndarray]:
+    """``ref``'s completion with its supported pixels only (confidence above 0; 0 elsewhere), and its
     confidence ``[H, W]``."""
-    maps = load_maps(ctx, name, "filled", normals=False)
-    conf = read_array(ctx.workspace.confidence_map_path(name, "filled")).reshape(maps.depth.shape)
+    maps = load_maps(ctx, ref, "filled", normals=False)
+    conf = read_array(ref.paths["filled"].confidence).reshape(maps.depth.shape)
     return replace(maps, depth=np.where(conf > 0, maps.depth, 0.0).astype(np.float32)), conf
 
 
 def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     """Add to ``name``'s geometric maps the completed pixels that the completions of its best views by
     score among this run's references (up to ``geom_num_sources``) confirm."""
-    cfg, ws = ctx.config, ctx.workspace
+    cfg, this = ctx.config, ctx.reference(name)
     timer = Timer()
-    geo, filled = read_provenance(ws, name, "geometric"), read_provenance(ws, name, "filled")
-    if geo is None or filled is None or not ws.depth_map_path(name, "filled").is_file():
-        remove_confirmed(ws, name)
+    geo, filled = this.provenance("geometric"), this.provenance("filled")
+    if geo is None or filled is None or not this.has_maps("filled"):
+        remove_confirmed(this)
         return RefOutcome(name, "confirm", "skipped", "it has no completion")
-    if not ws.depth_map_path(name, "geometric").is_file():
-        remove_confirmed(ws, name)
+    if not this.has_maps("geometric"):
+        remove_confirmed(this)
         return RefOutcome(name, "confirm", "skipped", "it has no geometric maps")
     entry = ctx.selection.references.get(name)
     refs = set(ctx.references)
@@ -74,35 +64,36 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     for s in entry.ranked_names if entry is not None else ():
         if len(sources) >= max(1, cfg.geometric.num_sources):
             break
-        prov = read_provenance(ws, s, "filled") if s in refs and s != name else None
+        prov = ctx.reference(s).provenance("filled") if s in refs and s != name else None
         geometric = current_geometric_provenance(ctx, s) if prov is not None else None
-        if (geometric is not None and ws.depth_map_path(s, "filled").is_file()  # made from its current maps
+        if (geometric is not None and ctx.reference(s).has_maps("filled")  # made from its current maps
                 and prov.get("settings", {}).get("reference") == geometric.get("fingerprint")):
             sources[s] = prov["fingerprint"]
     settings = {"format_version": FORMAT_VERSIONS["confirm"], "min_views": CONFIRM_MIN_VIEWS,
                 "max_reproj_error": CONFIRM_MAX_REPROJ_ERROR, "max_depth_error": CONFIRM_MAX_DEPTH_ERROR,
                 "geometric": geo["fingerprint"], "filled": filled["fingerprint"], "sources": sources}
-    record = read_json(confirm_provenance_path(ws, name))
-    geometric_path = ws.depth_map_path(name, "geometric")
+    paths = this.paths
+    record = read_json(paths.confirm_provenance)
+    geometric_path = paths["geometric"].depth
     geometric_sha256 = file_sha256(geometric_path)
     same = record is not None and record.get("fingerprint") == fingerprint(settings)
-    if (same and confirm_map_path(ws, name).is_file()
+    if (same and paths.confirm_map.is_file()
             and record.get("geometric_depth_sha256") == geometric_sha256):  # not rewritten since
         if not cfg.overwrite:
             return RefOutcome(name, "confirm", "done", seconds=timer.elapsed())
         why = "--overwrite"
     elif same:
-        why = ("its geometric maps were rewritten" if confirm_map_path(ws, name).is_file()
+        why = ("its geometric maps were rewritten" if paths.confirm_map.is_file()
                else "its confirmed pixels are missing")
     elif record is None:  # a first run, or new geometric maps (their pass removes the record)
         why = "its geometric maps are new"
     else:
         why = change_reason(record, settings, "confirm")
     with timer.step("load"):
-        depth, normals, conf = pure_geometric(ws, name, geometric_sha256)
-        ref, fconf = _supported_completion(ctx, name)
+        depth, normals, conf = pure_geometric(this, geometric_sha256)
+        ref, fconf = _supported_completion(ctx, this)
         supported = ref.depth
-        srcs = [_supported_completion(ctx, s)[0] for s in sources]
+        srcs = [_supported_completion(ctx, ctx.reference(s))[0] for s in sources]
     with timer.step("check"):
         candidates = np.where(depth > 0, 0.0, supported).astype(np.float32)
         added = np.zeros(depth.shape, bool)
@@ -116,18 +107,18 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
     with timer.step("writes"):
         # Crash-safe order: first a record that covers the old and the new pixels (on these geometric
         # maps), then the maps, then the exact record.
-        old_path = confirm_map_path(ws, name)
+        old_path = paths.confirm_map
         applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
             "geometric_depth_sha256") in (None, geometric_sha256)
         old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
         old = old if old.shape == depth.shape else np.zeros_like(depth)
         old_path.parent.mkdir(parents=True, exist_ok=True)
         write_depth_map(old_path, np.where(added, supported, old).astype(np.float32))
-        write_json(confirm_provenance_path(ws, name), {"fingerprint": None, "geometric": geo["fingerprint"]})
-        write_geometric(ws, name, np.where(added, supported, depth),
+        write_json(paths.confirm_provenance, {"fingerprint": None, "geometric": geo["fingerprint"]})
+        write_geometric(this, np.where(added, supported, depth),
                         np.where(added[..., None], fitted, normals), np.where(added, fconf, conf))
         write_depth_map(old_path, np.where(added, supported, 0.0).astype(np.float32))
-        write_json(confirm_provenance_path(ws, name), {
+        write_json(paths.confirm_provenance, {
             "fingerprint": fingerprint(settings), "geometric": geo["fingerprint"], "settings": settings,
             "geometric_depth_sha256": file_sha256(geometric_path), "added_fraction": float(added.mean())})
     return RefOutcome(name, "confirm", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

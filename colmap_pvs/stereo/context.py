@@ -27,6 +27,7 @@ from ..types import Image, SparseModel
 from ..views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 from .config import Stage, StereoConfig
 from .network import base_checkpoint_path, load_stereo_model, resolve_device
+from .reference import Reference
 
 logger = logging.getLogger(__name__)
 
@@ -243,7 +244,20 @@ class StereoContext:
     pending_writes: list[Future] = field(default_factory=list)
     seed_cache: OrderedDict = field(default_factory=OrderedDict)  # name -> (fingerprint, Checked)
     image_hashes: dict[str, str] = field(default_factory=dict)  # name -> sha256 of its file, once a run
+    reference_cache: dict[str, Reference] = field(default_factory=dict)  # name -> its Reference, once a run
     _hash_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def reference(self, name: str) -> Reference:
+        """Image ``name``'s :class:`~colmap_pvs.stereo.reference.Reference` in this run (made once: its
+        files and its view-selection depth range, ``None`` without an entry), from which every pass
+        reads its files and that of its sources."""
+        found = self.reference_cache.get(name)
+        if found is None:
+            entry = self.selection.references.get(name)
+            found = Reference.of(self.workspace, name,
+                                 depth_range=None if entry is None else entry.depth_range)
+            self.reference_cache[name] = found
+        return found
 
     def image_sha256(self, name: str) -> str:
         """sha256 of image ``name``'s file (hashed once per run; the photometric provenance records it)."""

@@ -27,15 +27,13 @@ from .outputs import (
     photometric_settings,
     pure_geometric,
     read_confidence,
-    read_provenance,
     remove_filled,
-    seed_map_path,
     stage_settings,
     stale_reason,
     write_filled,
     write_missing_previews,
 )
-from .reference import PassMaps, PassRecord, Reference
+from .reference import PassMaps, PassRecord
 from .timing import Timer
 
 
@@ -44,12 +42,12 @@ def current_geometric_provenance(ctx: StereoContext, name: str) -> dict | None:
     the run's references, its geometric settings are the run's, and they were made from its current
     photometric maps (whose fingerprint matches this run's settings and sources). ``None`` otherwise:
     maps left by another run, or by a pass this run skipped."""
-    ws = ctx.workspace
     if name not in ctx.references or name not in ctx.selection.references:
         return None
-    prov = read_provenance(ws, name, "geometric")
-    photo = read_provenance(ws, name, "photometric")
-    if prov is None or photo is None or not geometric_files_exist(ws, name):
+    ref = ctx.reference(name)
+    prov = ref.provenance("geometric")
+    photo = ref.provenance("photometric")
+    if prov is None or photo is None or not geometric_files_exist(ref):
         return None
     settings = prov.get("settings", {})
     wanted = stage_settings(ctx, "geometric", "geometric")
@@ -69,11 +67,11 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     current (:func:`current_geometric_provenance`, up to ``geom_num_sources``), so it runs once every
     geometric map exists.
     """
-    cfg, ws = ctx.config, ctx.workspace
+    cfg, ref = ctx.config, ctx.reference(name)
     timer = Timer()
-    prov = read_provenance(ws, name, "geometric")
-    if prov is None or not geometric_files_exist(ws, name):
-        remove_filled(ws, name)
+    prov = ref.provenance("geometric")
+    if prov is None or not geometric_files_exist(ref):
+        remove_filled(ref)
         return RefOutcome(name, "filled", "skipped", "its geometric maps do not exist")
     entry = ctx.selection.references.get(name)
     source_prov: dict[str, dict] = {}  # the best views by score whose geometric maps are current
@@ -87,35 +85,35 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
     settings.update(reference=prov["fingerprint"],
                     sources={s: p["fingerprint"] for s, p in source_prov.items()})
     size = tuple(prov.get("image_size", ctx.map_size(name)))
-    why = stale_reason(ws, name, "filled", settings, size, cfg.overwrite)
+    why = stale_reason(ref, "filled", settings, size, cfg.overwrite)
     if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
-            write_missing_previews(ws, name, "filled", entry.depth_range if entry is not None else None)
+            write_missing_previews(ref, "filled")  # over ref.depth_range: the entry's, if any
         return RefOutcome(name, "filled", "done", seconds=timer.elapsed())
     with timer.step("load"):
         # The seeds of the reference and of its sources are what is known.
-        ref = load_maps(ctx, name, "geometric", normals=False, depth_path=seed_map_path(ws, name))
-        srcs = [load_maps(ctx, s, "geometric", normals=False, depth_path=seed_map_path(ws, s))
-                for s in source_prov]
-        h, w = ref.depth.shape
+        seeds = load_maps(ctx, ref, "geometric", normals=False, depth_path=ref.paths.seeds)
+        srcs = [load_maps(ctx, src, "geometric", normals=False, depth_path=src.paths.seeds)
+                for src in map(ctx.reference, source_prov)]
+        h, w = seeds.depth.shape
         # the geometric pass's own maps: not the confirmed completion a previous run added to them
-        geometric_depth, _, geo_conf = pure_geometric(ws, name)
+        geometric_depth, _, geo_conf = pure_geometric(ref)
         geometric_kept = geometric_depth > 0
         if geometric_kept.shape != (h, w):
             raise MapFormatError(
                 f"geometric depth map of {name!r} is {geometric_kept.shape}, its seed map is {(h, w)}"
             )
-        photo = read_depth_map(ws.depth_map_path(name, "photometric"))
+        photo = read_depth_map(ref.paths["photometric"].depth)
         if photo.shape != (h, w):
             raise MapFormatError(
                 f"photometric depth map of {name!r} is {photo.shape}, its geometric one is {(h, w)}"
             )
-        photo_conf = read_confidence(ws, name, "photometric", (h, w))
+        photo_conf = read_confidence(ref.paths["photometric"].confidence, (h, w))
     with timer.step("splat"):
-        kept = ref.depth > 0
-        splat, support = splat_depths(ref.K, ref.cam_from_world, (w, h), srcs, cfg.completion.min_sources)
+        kept = seeds.depth > 0
+        splat, support = splat_depths(seeds.K, seeds.cam_from_world, (w, h), srcs, cfg.completion.min_sources)
         splatted = ~kept & (splat > 0)
-        known = np.where(kept, ref.depth, splat).astype(np.float32)
+        known = np.where(kept, seeds.depth, splat).astype(np.float32)
     segmented, refused, inliers = np.zeros_like(kept), np.zeros_like(kept), None
     if cfg.completion.segments:
         with timer.step("segments"):
@@ -141,7 +139,7 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
              "segmented_fraction": float(segmented.mean()),
              "unsupported_fraction": float(unsupported.mean())}
     dr = entry.depth_range if entry is not None else tuple(np.percentile(depth, [1, 99]))
-    ref = Reference.of(ws, name, source_prov, dr).with_pass("filled", PassMaps(depth, conf),
-                                                            PassRecord(settings, extra))
+    ref = ref.with_pass("filled", PassMaps(depth, conf), PassRecord(settings, extra), depth_range=dr,
+                        sources=source_prov)
     ctx.submit_write(write_filled, ref, previews=cfg.previews, timer=timer)
     return RefOutcome(name, "filled", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

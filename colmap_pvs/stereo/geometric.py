@@ -34,10 +34,7 @@ from .context import RefOutcome, StereoContext
 from .outputs import (
     fingerprint,
     geometric_files_exist,
-    read_provenance,
     read_visibility,
-    seed_map_path,
-    seed_provenance_path,
     stage_settings,
     stale_reason,
     write_missing_previews,
@@ -95,13 +92,13 @@ def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
     return np.clip(conf, 0.0, 1.0).astype(np.float32)
 
 
-def load_maps(ctx: StereoContext, name: str, kind: Stage = "photometric",
-               normals: bool = True, depth_path: Path | None = None) -> SourceMaps:
-    """``name``'s ``kind`` depth map (or the depth map at ``depth_path``; and its ``kind`` normal map,
+def load_maps(ctx: StereoContext, ref: Reference, kind: Stage = "photometric",
+              normals: bool = True, depth_path: Path | None = None) -> SourceMaps:
+    """``ref``'s ``kind`` depth map (or the depth map at ``depth_path``; and its ``kind`` normal map,
     with ``normals``), intrinsics and pose."""
-    ws = ctx.workspace
-    depth = read_depth_map(ws.depth_map_path(name, kind) if depth_path is None else depth_path)
-    normal_map = read_normal_map(ws.normal_map_path(name, kind)) if normals else None
+    name, out = ref.name, ref.paths[kind]
+    depth = read_depth_map(out.depth if depth_path is None else depth_path)
+    normal_map = read_normal_map(out.normals) if normals else None
     if normal_map is not None and normal_map.shape[:2] != depth.shape:
         raise MapFormatError(
             f"normal map of {name!r} is {normal_map.shape[:2]} but its depth map is {depth.shape}"
@@ -139,15 +136,15 @@ class CheckSetup:
 
 def _check_setup(ctx: StereoContext, name: str) -> CheckSetup | str:
     """:class:`CheckSetup` of ``name``, or why its geometric pass cannot run."""
-    cfg, ws = ctx.config, ctx.workspace
-    prov = read_provenance(ws, name, "photometric")
-    if prov is None or not ws.depth_map_path(name, "photometric").is_file():
+    cfg, ref = ctx.config, ctx.reference(name)
+    prov = ref.provenance("photometric")
+    if prov is None or not ref.has_maps("photometric"):
         return "its photometric maps do not exist"
     source_prov: dict[str, dict] = {}  # each source's provenance, read once
 
     def has_maps(s: str) -> bool:
-        if s not in source_prov and ws.depth_map_path(s, "photometric").is_file():
-            found = read_provenance(ws, s, "photometric")
+        if s not in source_prov and ctx.reference(s).has_maps("photometric"):
+            found = ctx.reference(s).provenance("photometric")
             if found is not None:
                 source_prov[s] = found
         return s in source_prov
@@ -187,9 +184,9 @@ def _check_kwargs(ctx: StereoContext) -> dict:
 def _load_check(ctx: StereoContext, name: str, setup: CheckSetup):
     """``(ref, srcs, vis)``: the photometric maps of ``name`` and of its checked sources, and the
     learned visibility of those sources (``None`` without a visibility map)."""
-    ref = load_maps(ctx, name)
-    srcs = [load_maps(ctx, s) for s in setup.sources]
-    coarse = read_visibility(ctx.workspace, name)
+    ref = load_maps(ctx, ctx.reference(name))
+    srcs = [load_maps(ctx, ctx.reference(s)) for s in setup.sources]
+    coarse = read_visibility(ctx.reference(name))
     vis = None if coarse is None else _check_visibility(coarse, list(setup.prov.get("sources", [])),
                                                        setup.sources, ref.depth.shape)
     return ref, srcs, vis
@@ -286,16 +283,16 @@ def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarra
     """The seeds of ``name`` (its check's ``setup``) for another reference's geometric pass: from this
     run's memory or a current seed map on disk, else computed from the photometric maps (the same
     check as ``name``'s own geometric pass, so the same seeds whoever makes them) and written."""
-    ws = ctx.workspace
+    paths = ctx.reference(name).paths
     wanted = fingerprint(setup.settings)
     cached = ctx.seed_cache.get(name)
     if cached is not None and cached[0] == wanted:
         return cached[1].seeds
     if not ctx.config.overwrite:
         try:
-            on_disk = json.loads(seed_provenance_path(ws, name).read_text()).get("fingerprint")
+            on_disk = json.loads(paths.seed_provenance.read_text()).get("fingerprint")
             if on_disk == wanted:
-                seeds = read_array(seed_map_path(ws, name))
+                seeds = read_array(paths.seeds)
                 seeds = seeds[..., 0] if seeds.ndim == 3 else seeds
                 _remember_seeds(ctx, name, wanted, Checked(seeds))
                 return seeds
@@ -304,7 +301,7 @@ def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarra
     # the whole check, kept for this image's own geometric pass later in the run (unless that pass
     # re-estimates, which checks the re-estimate instead)
     checked = _check_photometric(ctx, name, setup, kept=not _reestimates(ctx, setup))
-    write_seeds(ws, name, checked.seeds, wanted)
+    write_seeds(paths, checked.seeds, wanted)
     _remember_seeds(ctx, name, wanted, checked)
     return checked.seeds
 
@@ -402,7 +399,7 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     of its photometric maps (:func:`_checked_photometric`) or of a re-estimate (:func:`_reestimate`);
     then the sources' seeds fill dropped pixels (:func:`_add_splatted`) and normals are fitted.
     """
-    cfg, ws = ctx.config, ctx.workspace
+    cfg, ref = ctx.config, ctx.reference(name)
     timer = Timer()
     setup = _check_setup(ctx, name)
     if isinstance(setup, str):
@@ -415,12 +412,12 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     if cfg.geometric.splat_min_sources > 0:
         settings["splat_seeds"] = {s: fingerprint(found.settings) for s, found in splat_sources.items()}
     size = tuple(setup.prov.get("image_size", ctx.map_size(name)))
-    why = stale_reason(ws, name, "geometric", settings, size, cfg.overwrite)
-    if why is None and not geometric_files_exist(ws, name):
+    why = stale_reason(ref, "geometric", settings, size, cfg.overwrite)
+    if why is None and not geometric_files_exist(ref):
         why = "seed map missing"
     if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
-            write_missing_previews(ws, name, "geometric", entry.depth_range if entry is not None else None)
+            write_missing_previews(ref, "geometric")  # over ref.depth_range: the entry's, if any
         return RefOutcome(name, "geometric", "done", seconds=timer.elapsed())
     if _reestimates(ctx, setup):
         checked = _reestimate(ctx, name, setup, timer)
@@ -444,7 +441,7 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
              "reestimated": checked.reestimated}
     _remember_seeds(ctx, name, seed_fingerprint, Checked(checked.seeds))  # its own pass reruns its own check
     maps = PassMaps(depth, conf, normals, seeds=checked.seeds)
-    ref = Reference.of(ws, name, setup.prov.get("sources", []), dr).with_pass(
-        "geometric", maps, PassRecord(settings, extra, seed_fingerprint))
-    ctx.submit_write(write_pass, ref, "geometric", previews=cfg.previews, timer=timer)
+    ref = ref.with_pass("geometric", maps, PassRecord(settings, extra, seed_fingerprint), depth_range=dr,
+                        sources=setup.prov.get("sources", []))
+    ctx.submit_write(write_pass, ref, previews=cfg.previews, timer=timer)
     return RefOutcome(name, "geometric", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

@@ -77,7 +77,7 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
     for name in tqdm(names, desc=desc, unit="image"):
         if name in skip:
             if stage in ("filled", "confirm"):  # never keep a completion of maps this run did not make
-                remove_filled(ctx.workspace, name)
+                remove_filled(ctx.reference(name))
             continue
         out = process_reference(ctx, name, stage)
         outcomes.append(out)
@@ -151,7 +151,7 @@ def run_local(config: StereoConfig, weights: Path | None = None) -> StereoResult
                             set(result.skipped) | set(result.geometric_skipped) | set(result.filled_skipped))
         else:  # never keep a completion that no longer matches the maps
             for name in names:
-                remove_filled(ws, name)
+                remove_filled(ctx.reference(name))
     finally:
         ctx.close()
     sum_steps(outcomes, into=result.timings)

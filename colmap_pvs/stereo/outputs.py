@@ -1,5 +1,7 @@
-"""What the ``stereo`` passes write: output paths, provenance (what made each pass's maps, so that a
-rerun keeps exactly the passes whose settings did not change) and the map writers.
+"""What the ``stereo`` passes write and read back: provenance (what made each pass's maps, so that a
+rerun keeps exactly the passes whose settings did not change), the map writers and the readers of a
+:class:`~colmap_pvs.stereo.reference.Reference`'s files (the files themselves:
+:mod:`colmap_pvs.stereo.reference`).
 
 Every writer removes the pass's old depth map first and writes the new one last: a depth map with
 matching provenance marks a pass done, also after a crash.
@@ -36,18 +38,7 @@ from ..io.maps import (
 from ..io.workspace import Workspace, move_aside
 from ..model import stored_config
 from .config import FORMAT_VERSIONS, Stage, pass_settings
-from .reference import (
-    PassMaps,
-    PassPaths,
-    PassRecord,
-    Reference,
-    confirm_map_path,
-    confirm_provenance_path,
-    provenance_path,
-    seed_map_path,
-    seed_provenance_path,
-    visibility_map_path,
-)
+from .reference import PassMaps, PassPaths, PassRecord, Reference, ReferencePaths, provenance_path, read_json
 from .timing import Timer
 
 if TYPE_CHECKING:
@@ -56,18 +47,18 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-def read_visibility(ws: Workspace, name: str) -> np.ndarray | None:
-    """``[S, h/4, w/4]`` learned visibility of ``name``'s network sources (``None`` without a map)."""
-    path = visibility_map_path(ws, name)
+def read_visibility(ref: Reference) -> np.ndarray | None:
+    """``[S, h/4, w/4]`` learned visibility of ``ref``'s network sources (``None`` without a map)."""
+    path = ref.paths.visibility
     if not path.is_file():
         return None
     coarse = read_array(path)
     return (coarse[..., None] if coarse.ndim == 2 else coarse).transpose(2, 0, 1)
 
 
-def geometric_files_exist(ws: Workspace, name: str) -> bool:
-    """The geometric pass of ``name`` left its depth map and its seed map (the completion reads both)."""
-    return ws.depth_map_path(name, "geometric").is_file() and seed_map_path(ws, name).is_file()
+def geometric_files_exist(ref: Reference) -> bool:
+    """The geometric pass of ``ref`` left its depth map and its seed map (the completion reads both)."""
+    return ref.has_maps("geometric") and ref.paths.seeds.is_file()
 
 
 def fingerprint(settings: dict) -> str:
@@ -158,13 +149,13 @@ def change_reason(old: dict | None, new: dict, stage: Stage) -> str:
     return "recorded by an older colmap-pvs" if older else "maps missing or unreadable"
 
 
-def stale_reason(ws: Workspace, name: str, stage: Stage, settings: dict, size: tuple[int, int],
+def stale_reason(ref: Reference, stage: Stage, settings: dict, size: tuple[int, int],
                  overwrite: bool = False) -> str | None:
-    """``None`` when the pass's maps of ``name`` are current (:func:`is_current`), else why not in
+    """``None`` when ``ref``'s ``stage`` maps are current (:func:`is_current`), else why not in
     words (:func:`change_reason`; ``"--overwrite"``)."""
-    if is_current(ws, name, stage, fingerprint(settings), size):
+    if is_current(ref.paths[stage], fingerprint(settings), size):
         return "--overwrite" if overwrite else None
-    return change_reason(read_provenance(ws, name, stage), settings, stage)
+    return change_reason(ref.provenance(stage), settings, stage)
 
 
 def pass_summary(stage: str, outcomes, limit: int = 3) -> str:
@@ -189,14 +180,6 @@ def pass_summary(stage: str, outcomes, limit: int = 3) -> str:
     return f"{stage}: {len(computed)} computed{detail}, {done} already done, {skipped} skipped"
 
 
-def read_json(path: Path) -> dict | None:
-    """A JSON record, or ``None`` when it is missing or unreadable."""
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
 def json_bytes(payload: dict) -> bytes:
     return (json.dumps(payload, indent=1) + "\n").encode()
 
@@ -206,6 +189,9 @@ def write_json(path: Path, payload: dict) -> None:
 
 
 def read_provenance(ws: Workspace, name: str, stage: Stage) -> dict | None:
+    """The provenance of ``name``'s ``stage`` maps, for callers without a run's
+    :class:`~colmap_pvs.stereo.reference.Reference` (fusion, tools); a pass uses
+    :meth:`Reference.provenance <colmap_pvs.stereo.reference.Reference.provenance>`."""
     return read_json(provenance_path(ws, name, stage))
 
 
@@ -218,13 +204,13 @@ def outdated_completions(ws: Workspace, names: list[str]) -> tuple[list[str], li
     return missing, old
 
 
-def is_current(ws: Workspace, name: str, stage: Stage, fingerprint: str, size: tuple[int, int]) -> bool:
-    """The pass's depth map is readable, has the expected size and its provenance matches."""
-    prov = read_provenance(ws, name, stage)
+def is_current(out: PassPaths, fingerprint: str, size: tuple[int, int]) -> bool:
+    """The pass's depth map (at ``out``) is readable, has the expected size and its provenance matches."""
+    prov = read_json(out.provenance)
     if prov is None or prov.get("fingerprint") != fingerprint:
         return False
     try:
-        depth = read_depth_map(ws.depth_map_path(name, stage))
+        depth = read_depth_map(out.depth)
     except (OSError, MapFormatError):
         return False
     return depth.shape == (size[1], size[0])
@@ -234,21 +220,17 @@ def provenance_record(settings: dict, extra: dict) -> dict:
     return {"fingerprint": fingerprint(settings), "settings": settings, **extra}
 
 
-def write_provenance(ws: Workspace, name: str, stage: Stage, settings: dict, extra: dict) -> None:
-    write_json(provenance_path(ws, name, stage), provenance_record(settings, extra))
-
-
-def write_pass(ref: Reference, stage: Stage, *, previews: bool, timer: Timer) -> None:
-    """Write ``ref``'s maps and record of ``stage`` (``ref.maps[stage]``, ``ref.records[stage]``), then
+def write_pass(ref: Reference, *, previews: bool, timer: Timer) -> None:
+    """Write ``ref``'s maps and record of its pass (``ref.stage``, ``ref.maps``, ``ref.record``), then
     with ``previews`` its previews: every file is written beside its place first (a full disk leaves
     the old maps as they were), then the old depth is removed and the new files renamed into place,
     the depth last (it marks the pass done). Times ``writes`` and ``previews`` in ``timer``.
 
     The maps' ``visibility`` (photometric pass) goes to ``stereo/visibility_maps/NAME.bin``, their
-    ``seeds`` (geometric pass) to :func:`seed_map_path` with the record's ``seed_fingerprint``. Preview
-    names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
+    ``seeds`` (geometric pass) to ``stereo/seed_maps/NAME.bin`` with the record's ``seed_fingerprint``.
+    Preview names: ``NAME.photometric.*.png`` for the first pass, ``NAME.*.png`` for the geometric one.
     """
-    maps, record, paths = ref.maps[stage], ref.records[stage], ref.paths
+    stage, maps, record, paths = ref.stage, ref.maps, ref.record, ref.paths
     out = paths[stage]
     with timer.step("writes"):
         files = [(out.confidence, encode_array(out.confidence, maps.confidence.astype(np.float32)))]
@@ -276,7 +258,7 @@ def write_pass(ref: Reference, stage: Stage, *, previews: bool, timer: Timer) ->
         write_files_together(files, before_commit=drop_old)
     if previews:
         with timer.step("previews"):
-            write_previews(ref, stage)
+            write_previews(ref)
 
 
 _warned_foreign: set[Path] = set()  # the stereo folders whose COLMAP maps were reported this process
@@ -300,11 +282,11 @@ def _set_aside_colmaps_maps(out: PassPaths, stereo_dir: Path) -> None:
                        "is kept as NAME.bin.bak beside ours", stereo_dir, out.depth.name)
 
 
-def write_previews(ref: Reference, stage: Stage) -> None:
-    """PNG previews of ``ref``'s ``stage`` maps, coloured over ``ref.depth_range``: depth
-    (:func:`preview_path`), and but for the dense completion normals, confidence and the learned
-    visibility of each of ``ref.sources`` where the maps have it."""
-    maps, depth_path = ref.maps[stage], ref.paths[stage].preview
+def write_previews(ref: Reference) -> None:
+    """PNG previews of ``ref``'s maps (``ref.maps`` of ``ref.stage``), coloured over ``ref.depth_range``:
+    depth (:func:`~colmap_pvs.stereo.reference.preview_path`), and but for the dense completion
+    normals, confidence and the learned visibility of each of ``ref.sources`` where the maps have it."""
+    stage, maps, depth_path = ref.stage, ref.maps, ref.paths[ref.stage].preview
     stem = str(depth_path)[: -len(".depth.png")]
     save_depth_preview(depth_path, maps.depth, vmin=ref.depth_range[0], vmax=ref.depth_range[1])
     if stage == "filled":
@@ -316,63 +298,63 @@ def write_previews(ref: Reference, stage: Stage) -> None:
         save_scalar_preview(ref.paths.visibility_preview(ref.name, k, src), maps.visibility[k])
 
 
-def write_missing_previews(ws: Workspace, name: str, stage: Stage,
-                           depth_range: tuple[float, float] | None) -> bool:
-    """The previews of a finished pass that has none (a rerun that only adds ``--previews``), from its
-    maps on disk; ``depth_range`` ``None``: the 1st-99th percentile of its depth. Returns whether it
-    wrote them."""
-    ref = Reference.of(ws, name)
+def write_missing_previews(ref: Reference, stage: Stage) -> bool:
+    """The previews of ``ref``'s finished ``stage`` pass when it has none (a rerun that only adds
+    ``--previews``), from its maps on disk, coloured over ``ref.depth_range`` (``None``: the 1st-99th
+    percentile of its depth). Returns whether it wrote them."""
     out = ref.paths[stage]
     if out.preview.is_file():
         return False
     depth = read_depth_map(out.depth)
+    depth_range = ref.depth_range
     if depth_range is None:
         valid = depth[depth > 0]
         depth_range = tuple(np.percentile(valid, [1, 99])) if valid.size else (1.0, 2.0)
     if stage == "filled":
         maps = PassMaps(depth, np.zeros_like(depth))
     else:
-        maps = PassMaps(depth, read_confidence(ws, name, stage, depth.shape), read_normal_map(out.normals))
+        maps = PassMaps(depth, read_confidence(out.confidence, depth.shape), read_normal_map(out.normals))
+    sources = ()
     if stage == "photometric":
-        sources = (read_provenance(ws, name, stage) or {}).get("sources", [])
-        vis = read_visibility(ws, name)
-        if vis is not None and vis.shape[0] == len(sources):
-            ref = replace(ref, sources=tuple(sources))
+        recorded = (ref.provenance(stage) or {}).get("sources", [])
+        vis = read_visibility(ref)
+        if vis is not None and vis.shape[0] == len(recorded):
+            sources = recorded
             maps = replace(maps, visibility=vis)
-    write_previews(ref.with_pass(stage, maps, PassRecord({}, {}), depth_range), stage)
+    write_previews(ref.with_pass(stage, maps, PassRecord({}, {}), depth_range=depth_range, sources=sources))
     return True
 
 
-def write_seeds(ws: Workspace, name: str, seeds: np.ndarray, fingerprint: str) -> None:
+def write_seeds(paths: ReferencePaths, seeds: np.ndarray, fingerprint: str) -> None:
     """The seed map, then its fingerprint (which marks it current)."""
-    seed_provenance_path(ws, name).unlink(missing_ok=True)
-    write_array(seed_map_path(ws, name), seeds.astype(np.float32))
+    paths.seed_provenance.unlink(missing_ok=True)
+    write_array(paths.seeds, seeds.astype(np.float32))
     payload = json.dumps({"fingerprint": fingerprint}) + "\n"
-    atomic_write_bytes(seed_provenance_path(ws, name), payload.encode())
+    atomic_write_bytes(paths.seed_provenance, payload.encode())
 
 
-def read_confidence(ws: Workspace, name: str, kind: Stage, shape: tuple[int, int]) -> np.ndarray:
-    path = ws.confidence_map_path(name, kind)
+def read_confidence(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """The confidence map at ``path`` (all 0 without one), which must be ``shape``."""
     conf = read_array(path) if path.is_file() else np.zeros(shape, np.float32)
     if conf.shape != shape:
         raise MapFormatError(f"confidence map {str(path)!r} is {conf.shape}, its depth map is {shape}")
     return conf
 
 
-def remove_filled(ws: Workspace, name: str) -> None:
-    """Remove ``name``'s dense completion (its provenance first, so nothing half-removed looks done), and
+def remove_filled(ref: Reference) -> None:
+    """Remove ``ref``'s dense completion (its provenance first, so nothing half-removed looks done), and
     take what its confirmation added back out of the geometric maps."""
-    remove_confirmed(ws, name)
-    for path in (provenance_path(ws, name, "filled"), ws.depth_map_path(name, "filled"),
-                 ws.confidence_map_path(name, "filled")):
+    remove_confirmed(ref)
+    out = ref.paths["filled"]
+    for path in (out.provenance, out.depth, out.confidence):
         path.unlink(missing_ok=True)
 
 
 def write_filled(ref: Reference, *, previews: bool, timer: Timer) -> None:
-    """Write ``ref``'s dense completion (``ref.maps["filled"]``, ``ref.records["filled"]``): confidence,
-    provenance, then the depth (which marks it done), each beside its place first, so that a full disk
-    leaves the old completion as it was; with ``previews`` its depth preview. Times ``writes``."""
-    maps, record, out = ref.maps["filled"], ref.records["filled"], ref.paths["filled"]
+    """Write ``ref``'s dense completion (``ref.maps`` and ``ref.record`` of its ``filled`` pass):
+    confidence, provenance, then the depth (which marks it done), each beside its place first, so that a
+    full disk leaves the old completion as it was; with ``previews`` its depth preview. Times ``writes``."""
+    maps, record, out = ref.maps, ref.record, ref.paths["filled"]
     with timer.step("writes"):
         # The old depth goes once the new files are written, before they are renamed into place: new
         # provenance beside an old depth would look done after a crash.
@@ -382,26 +364,27 @@ def write_filled(ref: Reference, *, previews: bool, timer: Timer) -> None:
                               (out.depth, encode_depth_map(out.depth, maps.depth))],
                              before_commit=lambda: out.depth.unlink(missing_ok=True))
     if previews:
-        write_previews(ref, "filled")
+        write_previews(ref)
 
 
 # --------------------------------------------------------------------------- the confirmed completion
 
 
-def pure_geometric(ws: Workspace, name: str, depth_sha256: str | None = None,
+def pure_geometric(ref: Reference, depth_sha256: str | None = None,
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``name``'s geometric depth, normals and confidence without the pixels a confirmation added to
+    """``ref``'s geometric depth, normals and confidence without the pixels a confirmation added to
     these very maps (it recorded their fingerprint and, once done, their depth file's sha256, which a
     caller that has it passes as ``depth_sha256``); ``None`` without geometric maps."""
-    geo = read_provenance(ws, name, "geometric")
-    depth_path = ws.depth_map_path(name, "geometric")
+    geo = ref.provenance("geometric")
+    out = ref.paths["geometric"]
+    depth_path = out.depth
     if geo is None or not depth_path.is_file():
         return None
     depth = read_depth_map(depth_path)
-    normals = read_normal_map(ws.normal_map_path(name, "geometric"))
-    conf = read_confidence(ws, name, "geometric", depth.shape)
-    record = read_json(confirm_provenance_path(ws, name))
-    added_path = confirm_map_path(ws, name)
+    normals = read_normal_map(out.normals)
+    conf = read_confidence(out.confidence, depth.shape)
+    record = read_json(ref.paths.confirm_provenance)
+    added_path = ref.paths.confirm_map
     written = (record or {}).get("geometric_depth_sha256")  # absent while a confirmation is writing
     if (record is not None and record.get("geometric") == geo.get("fingerprint") and added_path.is_file()
             and (written is None or written == (depth_sha256 or file_sha256(depth_path)))):  # not rewritten
@@ -412,20 +395,22 @@ def pure_geometric(ws: Workspace, name: str, depth_sha256: str | None = None,
     return depth.astype(np.float32), normals.astype(np.float32), conf.astype(np.float32)
 
 
-def write_geometric(ws: Workspace, name: str, depth, normals, conf) -> None:
-    write_array(ws.confidence_map_path(name, "geometric"), conf.astype(np.float32))
-    write_normal_map(ws.normal_map_path(name, "geometric"), normals.astype(np.float32))
-    write_depth_map(ws.depth_map_path(name, "geometric"), depth.astype(np.float32))
+def write_geometric(ref: Reference, depth, normals, conf) -> None:
+    """``ref``'s geometric confidence, normals and depth (last), each written in place."""
+    out = ref.paths["geometric"]
+    write_array(out.confidence, conf.astype(np.float32))
+    write_normal_map(out.normals, normals.astype(np.float32))
+    write_depth_map(out.depth, depth.astype(np.float32))
 
 
-def remove_confirmed(ws: Workspace, name: str) -> None:
-    """Take the pixels a confirmation added back out of ``name``'s geometric maps (when they are the maps
+def remove_confirmed(ref: Reference) -> None:
+    """Take the pixels a confirmation added back out of ``ref``'s geometric maps (when they are the maps
     it added them to) and remove its record."""
-    record_path, added_path = confirm_provenance_path(ws, name), confirm_map_path(ws, name)
+    record_path, added_path = ref.paths.confirm_provenance, ref.paths.confirm_map
     if not record_path.is_file() and not added_path.is_file():
         return
-    pure = pure_geometric(ws, name)
+    pure = pure_geometric(ref)
     if pure is not None and added_path.is_file():
-        write_geometric(ws, name, *pure)
+        write_geometric(ref, *pure)
     record_path.unlink(missing_ok=True)
     added_path.unlink(missing_ok=True)

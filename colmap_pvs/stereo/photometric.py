@@ -30,7 +30,7 @@ from .config import PRIOR_BLEND_WINDOW
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
 from .outputs import photometric_settings, stale_reason, write_missing_previews, write_pass
-from .reference import PassMaps, PassRecord, Reference
+from .reference import PassMaps, PassRecord
 from .timing import Timer
 
 logger = logging.getLogger(__name__)
@@ -114,24 +114,24 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timer: Timer
 
 def photometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     """The photometric pass of reference ``name``: its network maps, unless current (module docstring)."""
-    cfg, ws = ctx.config, ctx.workspace
+    cfg = ctx.config
     timer = Timer()
     sources, reason = ctx.sources_of(name)
     if sources is None:
         return RefOutcome(name, "photometric", "skipped", reason)
+    ref = ctx.reference(name)
     size = ctx.map_size(name)
     settings = photometric_settings(ctx, name, sources)
-    why = stale_reason(ws, name, "photometric", settings, size, cfg.overwrite)
-    entry = ctx.selection.references[name]
+    why = stale_reason(ref, "photometric", settings, size, cfg.overwrite)
     if why is None:
         if cfg.previews:  # an output-only option: its files from the maps on disk, nothing recomputed
-            write_missing_previews(ws, name, "photometric", entry.depth_range)
+            write_missing_previews(ref, "photometric")
         return RefOutcome(name, "photometric", "done", seconds=timer.elapsed())
     maps = network_maps(ctx, name, sources, timer)
     if isinstance(maps, str):
         return RefOutcome(name, "photometric", "skipped", maps)
     record = PassRecord(settings, {"image_size": list(size), "sources": sources,
                                    "sources_from": ctx.sources_origin(name)})
-    ref = Reference.of(ws, name, sources, entry.depth_range).with_pass("photometric", maps, record)
-    ctx.submit_write(write_pass, ref, "photometric", previews=cfg.previews, timer=timer)
+    ref = ref.with_pass("photometric", maps, record, sources=sources)
+    ctx.submit_write(write_pass, ref, previews=cfg.previews, timer=timer)
     return RefOutcome(name, "photometric", "computed", why, seconds=timer.elapsed(), timings=timer.steps)

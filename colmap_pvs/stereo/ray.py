@@ -52,6 +52,7 @@ from .config import CONFIG_FILENAME, StereoConfig
 from .context import RefOutcome, StereoResult, patch_match_note, prepare_stereo
 from .local import auxiliary_references, process_reference
 from .outputs import pass_summary, remove_filled
+from .reference import Reference
 from .timing import Timer, sum_steps
 
 logger = logging.getLogger(__name__)
@@ -422,7 +423,7 @@ class _Driver:
                 prev = outcomes.get((task[0], self.passes[i - 1])) if i else None
                 if prev is not None and prev.status == "skipped":  # recorded, so later passes skip too
                     if task[1] == "filled":  # never left for another reference's confirmation to read
-                        remove_filled(Workspace(self.wcfg.workspace_path), task[0])
+                        remove_filled(Reference.of(Workspace(self.wcfg.workspace_path), task[0]))
                     outcomes[task] = RefOutcome(task[0], task[1], "skipped", prev.reason)
                     graph.finish(task)
                     bar.update(1)
@@ -556,7 +557,7 @@ def run_stereo_ray(config: StereoConfig, weights: Path | None = None) -> Distrib
         for name in refs:  # as locally: never keep a completion that no longer matches
             out = outcomes.get((name, "filled"))
             if "filled" not in passes or out is None or out.status == "skipped":
-                remove_filled(ws, name)
+                remove_filled(Reference.of(ws, name))
         for stage in passes:
             logger.info("stereo %s", pass_summary(stage, outcomes.values()))
         result = _result(ws, plan, passes, outcomes, wall.elapsed())

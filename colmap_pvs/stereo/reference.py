@@ -1,9 +1,16 @@
-"""One reference image as the ``stereo`` passes see it: its name, sources, files, maps and records.
+"""One reference image as the ``stereo`` passes see it: its name, sources, files, maps and record.
 
-A pass makes a :class:`Reference` (:meth:`Reference.of`: every path computed once), computes its maps
+Each run makes one :class:`Reference` per image, once (:meth:`StereoContext.reference
+<colmap_pvs.stereo.context.StereoContext.reference>`: every path computed once). A pass reads its
+inputs through it -- its own and its sources' provenance (:meth:`Reference.provenance`), maps
+(``ref.paths[stage]``), seeds, visibility and confirmation record -- computes its maps
 (:class:`PassMaps`) and what made them (:class:`PassRecord`), and hands ``ref.with_pass(stage, maps,
 record)`` to :func:`~colmap_pvs.stereo.outputs.write_pass`, which writes exactly what it holds: the
 maps to ``ref.paths[stage]``, the record as ``stereo/provenance/NAME.STAGE.json``.
+
+A :class:`Reference` carries the maps of one pass at most: a pass reads the previous pass's maps from
+disk (another process may have made them, and a run over thousands of images cannot keep every
+image's maps in memory until its next pass), so the cached one holds paths only.
 
 The path helpers below are the layout of ``stereo/`` beside the workspace's own depth, normal and
 confidence maps (:class:`~colmap_pvs.io.workspace.Workspace`).
@@ -11,8 +18,9 @@ confidence maps (:class:`~colmap_pvs.io.workspace.Workspace`).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
 
@@ -149,28 +157,46 @@ class PassRecord:
     seed_fingerprint: str | None = None
 
 
+def read_json(path: Path) -> dict | None:
+    """A JSON record, or ``None`` when it is missing or unreadable."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
 @dataclass(frozen=True)
 class Reference:
     """One reference image of a run: ``name``, its network ``sources`` (in the order of the photometric
-    visibility maps), its ``depth_range`` (the previews' colour scale), its files (``paths``, computed
-    once) and the maps and records of the passes computed on it so far (``maps[stage]``,
-    ``records[stage]``; :meth:`with_pass` adds one)."""
+    visibility maps; set by the photometric pass), its ``depth_range`` (the previews' colour scale;
+    ``None`` without a view-selection entry), its files (``paths``, computed once) and, once a pass
+    has computed them, that pass's ``stage``, ``maps`` and ``record`` (:meth:`with_pass`)."""
 
     name: str
     paths: ReferencePaths
     sources: tuple[str, ...] = ()
     depth_range: tuple[float, float] | None = None
-    maps: Mapping[Stage, PassMaps] = field(default_factory=lambda: MappingProxyType({}))
-    records: Mapping[Stage, PassRecord] = field(default_factory=lambda: MappingProxyType({}))
+    stage: Stage | None = None
+    maps: PassMaps | None = None
+    record: PassRecord | None = None
 
     @classmethod
     def of(cls, ws: Workspace, name: str, sources=(), depth_range: tuple[float, float] | None = None,
            ) -> Reference:
         return cls(name, ReferencePaths.of(ws, name), tuple(sources), depth_range)
 
-    def with_pass(self, stage: Stage, maps: PassMaps, record: PassRecord,
-                  depth_range: tuple[float, float] | None = None) -> Reference:
-        """This reference with ``stage``'s ``maps`` and ``record`` (and ``depth_range``, when given)."""
-        return replace(self, maps=MappingProxyType({**self.maps, stage: maps}),
-                       records=MappingProxyType({**self.records, stage: record}),
-                       depth_range=self.depth_range if depth_range is None else depth_range)
+    def with_pass(self, stage: Stage, maps: PassMaps, record: PassRecord, *,
+                  depth_range: tuple[float, float] | None = None, sources=None) -> Reference:
+        """This reference with ``stage``'s ``maps`` and ``record`` (and ``depth_range`` and
+        ``sources``, when given)."""
+        return replace(self, stage=stage, maps=maps, record=record,
+                       depth_range=self.depth_range if depth_range is None else depth_range,
+                       sources=self.sources if sources is None else tuple(sources))
+
+    def provenance(self, stage: Stage) -> dict | None:
+        """The provenance of this reference's ``stage`` maps (``None``: missing or unreadable)."""
+        return read_json(self.paths[stage].provenance)
+
+    def has_maps(self, stage: Stage) -> bool:
+        """This reference's ``stage`` depth map exists (it is written last: the pass finished)."""
+        return self.paths[stage].depth.is_file()
