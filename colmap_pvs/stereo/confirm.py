@@ -108,6 +108,8 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
         # Crash-safe order: first a record that covers the old and the new pixels (on these geometric
         # maps), then the maps, then the exact record.
         old_path = paths.confirm_map
+        # The interim record below has no geometric_depth_sha256 (None): a run killed between its
+        # writes left maps that still hold its pixels.
         applies = record is not None and record.get("geometric") == geo["fingerprint"] and record.get(
             "geometric_depth_sha256") in (None, geometric_sha256)
         old = read_depth_map(old_path) if old_path.is_file() and applies else np.zeros_like(depth)
