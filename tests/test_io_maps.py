@@ -26,6 +26,7 @@ from colmap_pvs.io import (
     write_depth_map,
     write_normal_map,
 )
+from colmap_pvs.io.maps import BAR_HEIGHT, save_confidence_preview
 
 
 def _colmap_mat_bytes(values: np.ndarray) -> bytes:
@@ -182,12 +183,12 @@ def test_previews(tmp_path: Path) -> None:
     depth[0, :5] = 0.0
     depth[1, 0] = np.nan
     preview = _read_png(save_depth_preview(tmp_path / "d.png", depth))
-    assert preview.shape == (10, 20, 3)
+    assert preview.shape == (10 + BAR_HEIGHT, 20, 3)  # the colour bar below the picture
     assert (preview[0, :5] == 0).all() and (preview[1, 0] == 0).all()
     assert (preview[5].astype(int).sum(axis=1) > 0).all()
     assert not np.array_equal(preview[5, 1], preview[5, -2])  # colour varies with depth
     # the preview is colorize_depth's picture; a fixed range clips (benchmark pictures share one scale)
-    assert np.array_equal(preview, colorize_depth(depth))
+    assert np.array_equal(preview[:10], colorize_depth(depth))
     fixed = colorize_depth(depth, 2.0, 3.0)
     assert np.array_equal(fixed[5, 0], fixed[5, 4]) and not np.array_equal(fixed[5, 0], fixed[5, -1])
     assert (fixed[0, :5] == 0).all()
@@ -206,6 +207,57 @@ def test_previews(tmp_path: Path) -> None:
         save_scalar_preview(tmp_path / "bad.png", values, vmin=1.0, vmax=1.0)
     assert not (tmp_path / "bad.png").exists()
     assert _leftovers(tmp_path) == []
+
+
+def _lut(colormap: int, width: int) -> np.ndarray:
+    """``[width, 3]``: the colour map from its low end to its high end."""
+    return cv2.applyColorMap(np.round(np.linspace(0, 255, width)).astype(np.uint8)[None], colormap)[0]
+
+
+def _has_row(strip: np.ndarray, row: np.ndarray) -> bool:
+    return any(np.array_equal(r, row) for r in strip)
+
+
+def test_depth_preview_has_a_colour_bar_with_near_and_far_values(tmp_path: Path) -> None:
+    """Below the depth picture (its size unchanged): a strip with the turbo colour map from near (left)
+    to far (right), and under it the values and units; the far value's label changes with the range."""
+    depth = np.tile(np.linspace(2.0, 6.0, 200), (30, 1))
+    preview = _read_png(save_depth_preview(tmp_path / "d.png", depth, vmin=2.0, vmax=6.0))
+    assert preview.shape == (30 + BAR_HEIGHT, 200, 3)
+    assert np.array_equal(preview[:30], colorize_depth(depth, 2.0, 6.0))
+    strip = preview[30:]
+    assert _has_row(strip, _lut(cv2.COLORMAP_TURBO, 200))  # the colour map, one end to the other
+    gradient_rows = [i for i, r in enumerate(strip) if np.array_equal(r, _lut(cv2.COLORMAP_TURBO, 200))]
+    labels = strip[gradient_rows[-1] + 1:]
+    assert labels[:, :20].any() and labels[:, -20:].any() and labels[:, 80:120].any()  # near, far, title
+    farther = _read_png(save_depth_preview(tmp_path / "f.png", depth, vmin=2.0, vmax=9.0))[30:]
+    assert np.array_equal(farther[:, :20], strip[:, :20])  # the same near value
+    assert not np.array_equal(farther[:, -20:], strip[:, -20:])  # another far value
+
+
+def test_confidence_preview_is_dark_where_the_depth_is_likely_wrong(tmp_path: Path) -> None:
+    """A calibrated confidence preview: inferno (black at P = 0) on the fixed probability scale (P = 0.9
+    mid-way, 0.99 and above at the top), so that the probabilities near 1 of kept pixels are told
+    apart; an uncalibrated one linearly over [0, 1]. Both have the colour bar and their title below."""
+    conf = np.tile(np.linspace(0.0, 1.0, 201), (20, 1))
+    conf[:, -1] = np.nan  # non-finite: black
+    lut = _lut(cv2.COLORMAP_INFERNO, 256)
+    cal = _read_png(save_confidence_preview(tmp_path / "c.png", conf, 0.05))
+    raw = _read_png(save_confidence_preview(tmp_path / "r.png", conf, None))
+    assert cal.shape == raw.shape == (20 + BAR_HEIGHT, 201, 3)
+    at = {p: int(round(p * 200)) for p in (0.0, 0.5, 0.82, 0.9, 0.99)}
+    assert np.array_equal(cal[5, at[0.0]], lut[0]) and cal[5, at[0.0]].astype(int).sum() < 30  # dark
+    assert np.array_equal(cal[5, at[0.9]], lut[128]) and np.array_equal(cal[5, at[0.99]], lut[255])
+    assert np.array_equal(cal[5, -1], lut[0])
+    brightness = cal[5, :-1].astype(int).sum(axis=1)
+    assert np.all(np.diff(brightness) >= -2)  # darker where less likely right
+    # P 0.82 and 0.99 (a geometric map's span) are far apart on the colour map, not both white
+    assert np.abs(cal[5, at[0.82]].astype(int) - lut[255]).sum() > 150
+    assert np.array_equal(raw[5, at[0.5]], lut[128]) and np.array_equal(raw[5, at[0.9]], lut[230])
+    for preview in (cal, raw):
+        assert _has_row(preview[20:], _lut(cv2.COLORMAP_INFERNO, 201))
+        assert preview[-12:, 60:140].any()  # the title
+    assert not np.array_equal(cal[-12:], raw[-12:])  # "P(depth within 5 %)" / "confidence score"
 
 
 def test_read_error_names_unreadable_path(tmp_path: Path) -> None:

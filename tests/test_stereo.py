@@ -488,7 +488,7 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     added &= geo > 0
     assert added.sum() > 0.5 * 30 * 40 and np.median(np.abs(geo[added] / exact[ref][added] - 1)) < 0.005
     assert conf[added].min() > 0
-    preview = cv2.imread(str(preview_path(load_workspace(ws)[0], ref, "geometric")))
+    preview = cv2.imread(str(preview_path(load_workspace(ws)[0], ref, "geometric")))[: geo.shape[0]]  # no bar
     colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
     assert len(colours) > 50  # not one colour clipped at an end of the scale
 
@@ -1053,9 +1053,20 @@ def test_select_views_wide_sources_reach_stereo_through_patch_match_cfg(analytic
 def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthetic_ws, tmp_path,
                                                                           tiny_checkpoint):
     """``--previews`` is an output-only option: a rerun that only adds it writes the previews of every
-    pass from the maps on disk and recomputes nothing (maps and provenance stay as they were)."""
+    pass from the maps on disk and recomputes nothing (maps and provenance stay as they were). With a
+    calibrated checkpoint, each confidence preview is on the calibration's scale ("P(depth within
+    10 %)", the tolerance read from the provenance), and every depth and confidence preview has the
+    map's size plus the colour bar below it."""
+    from colmap_pvs.io.maps import BAR_HEIGHT, save_confidence_preview
+
     ws = _copy(synthetic_ws, tmp_path)
-    cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+    checkpoint = tmp_path / "model" / "tiny.pt"
+    checkpoint.parent.mkdir()
+    shutil.copy(tiny_checkpoint, checkpoint)
+    curve = {"score": [0.0, 1.0], "prob": [0.0, 1.0]}
+    (checkpoint.parent / "tiny.calibration.json").write_text(json.dumps(
+        {"tolerance": 0.1, "curves": {"photometric": curve, "geometric": curve}, "fit": {}}))
+    cfg = stereo_config(workspace_path=ws, checkpoint=checkpoint, num_views=3, max_image_size=48,
                         geom_min_consistent=1)
     first = run_stereo(cfg)
     assert first.processed and not (ws / "stereo" / "previews").exists()
@@ -1080,6 +1091,14 @@ def test_previews_on_a_finished_workspace_are_written_without_recomputing(synthe
             at_once = preview_path(load_workspace(ws_at_once)[0], name, stage)
             assert at_once.is_file()
             np.testing.assert_array_equal(cv2.imread(str(late)), cv2.imread(str(at_once)), err_msg=str(late))
+            conf = read_array(ws / "stereo" / "confidence_maps" / f"{name}.{stage}.bin")
+            assert cv2.imread(str(late)).shape == (conf.shape[0] + BAR_HEIGHT, conf.shape[1], 3)
+            expected = save_confidence_preview(tmp_path / "expected.png", conf, 0.1).read_bytes()
+            assert expected != save_confidence_preview(tmp_path / "raw.png", conf, None).read_bytes()
+            for folder in (ws, ws_at_once):
+                conf_preview = preview_path(load_workspace(folder)[0], name, stage)
+                conf_preview = conf_preview.with_name(conf_preview.name.replace(".depth.", ".confidence."))
+                assert conf_preview.read_bytes() == expected, conf_preview
 
 
 def test_colmaps_own_maps_are_kept_beside_ours(synthetic_ws, tmp_path, tiny_checkpoint, caplog):

@@ -44,6 +44,8 @@ __all__ = [
     "save_depth_preview",
     "save_normal_preview",
     "save_scalar_preview",
+    "save_confidence_preview",
+    "colour_bar",
 ]
 
 
@@ -235,6 +237,20 @@ def _check_2d(values: np.ndarray, path: str | os.PathLike) -> np.ndarray:
     return values
 
 
+def _depth_scale(depth: np.ndarray, vmin: float | None, vmax: float | None,
+                 ) -> tuple[np.ndarray, float, float]:
+    """The valid pixels of ``depth`` and the range ``(lo, hi)`` a preview colours it over (``vmin`` /
+    ``vmax``, by default the 2nd/98th percentiles of the valid values)."""
+    valid = np.isfinite(depth) & (depth > 0)
+    if valid.any():
+        lo, hi = np.percentile(depth[valid], [2.0, 98.0])
+        lo = float(lo) if vmin is None else float(vmin)
+        hi = float(hi) if vmax is None else float(vmax)
+    else:
+        lo, hi = 0.0, 1.0
+    return valid, lo, hi
+
+
 def colorize_depth(depth: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
     """``[H, W, 3]`` uint8 BGR (turbo colour map) of a ``[H, W]`` depth (or inverse depth) map, ``vmin``
     blue to ``vmax`` red; invalid (``<= 0`` or non-finite) pixels are black.
@@ -244,26 +260,64 @@ def colorize_depth(depth: np.ndarray, vmin: float | None = None, vmax: float | N
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:
         raise ShapeError(f"colorize_depth expects an [H, W] map, got shape {depth.shape}")
-    valid = np.isfinite(depth) & (depth > 0)
-    if valid.any():
-        lo, hi = np.percentile(depth[valid], [2.0, 98.0])
-        lo = float(lo) if vmin is None else float(vmin)
-        hi = float(hi) if vmax is None else float(vmax)
-    else:
-        lo, hi = 0.0, 1.0
+    valid, lo, hi = _depth_scale(depth, vmin, vmax)
     scaled = np.clip((np.where(valid, depth, lo) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
     bgr = cv2.applyColorMap((scaled * 255).round().astype(np.uint8), cv2.COLORMAP_TURBO)
     bgr[~valid] = 0
     return bgr
 
 
+#: Height in pixels of the colour bar strip below a depth or confidence preview.
+BAR_HEIGHT = 44
+_BAR_ROWS = (4, 16)  # the rows of the strip the colour gradient fills
+_FONT, _FONT_SCALE = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+
+
+def colour_bar(width: int, colormap: int, ticks: list[tuple[float, str]], title: str) -> np.ndarray:
+    """``[BAR_HEIGHT, width, 3]`` uint8 BGR legend strip: the colour map ``colormap`` from its low end
+    (left) to its high end (right), ``ticks`` (position in ``[0, 1]`` along it, label; in order of
+    priority: one whose label would overlap an earlier one's is left out) marked under it with their
+    labels, and ``title`` below them, white on black."""
+    strip = np.zeros((BAR_HEIGHT, width, 3), np.uint8)
+    levels = np.round(np.linspace(0.0, 255.0, width)).astype(np.uint8)[None, :]
+    top, bottom = _BAR_ROWS
+    strip[top:bottom] = cv2.applyColorMap(levels, colormap)
+    white, text_row, placed = (255, 255, 255), bottom + 12, []
+    for pos, label in ticks:  # in order of priority: a label that would overlap a placed one is left out
+        x = int(round(pos * (width - 1)))
+        (w, _), _ = cv2.getTextSize(label, _FONT, _FONT_SCALE, 1)
+        left = min(max(x - w // 2, 2), width - w - 2)  # the end labels stay inside the strip
+        if left < 2 or any(left <= b + 4 and a <= left + w + 4 for a, b in placed):
+            continue
+        strip[bottom:bottom + 3, x] = white
+        cv2.putText(strip, label, (left, text_row), _FONT, _FONT_SCALE, white, 1, cv2.LINE_AA)
+        placed.append((left, left + w))
+    (w, _), _ = cv2.getTextSize(title, _FONT, _FONT_SCALE, 1)
+    cv2.putText(strip, title, (max((width - w) // 2, 0), BAR_HEIGHT - 3), _FONT, _FONT_SCALE, white, 1,
+                cv2.LINE_AA)
+    return strip
+
+
+def _with_bar(image: np.ndarray, bar: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return np.concatenate([image, bar], axis=0)
+
+
 def save_depth_preview(
-    path: str | os.PathLike, depth: np.ndarray, vmin: float | None = None, vmax: float | None = None
+    path: str | os.PathLike, depth: np.ndarray, vmin: float | None = None, vmax: float | None = None,
+    units: str = "scene units",
 ) -> Path:
-    """Colour-mapped PNG of a ``[H, W]`` depth map (:func:`colorize_depth`); invalid (``<= 0`` or
-    non-finite) pixels are black. ``vmin``/``vmax`` default to the 2nd/98th percentiles of the valid depths.
+    """Colour-mapped PNG of a ``[H, W]`` depth map (:func:`colorize_depth`) with a colour bar strip of
+    :data:`BAR_HEIGHT` rows below it (:func:`colour_bar`: near to far, five values in ``units``);
+    invalid (``<= 0`` or non-finite) pixels are black. ``vmin``/``vmax`` default to the 2nd/98th
+    percentiles of the valid depths.
     """
-    return _write_png(path, colorize_depth(_check_2d(depth, path), vmin, vmax))
+    depth = _check_2d(depth, path)
+    _, lo, hi = _depth_scale(depth, vmin, vmax)
+    ticks = [(f, f"{lo + f * (hi - lo):.3g}") for f in (0.0, 1.0, 0.5, 0.25, 0.75)]  # near and far first
+    bar = colour_bar(depth.shape[1], cv2.COLORMAP_TURBO, ticks, f"depth ({units})")
+    return _write_png(path, _with_bar(colorize_depth(depth, lo, hi), bar))
 
 
 def save_normal_preview(path: str | os.PathLike, normals: np.ndarray) -> Path:
@@ -291,3 +345,30 @@ def save_scalar_preview(
         )
     scaled = np.clip((np.nan_to_num(values, nan=vmin, posinf=vmin, neginf=vmin) - vmin) / (vmax - vmin), 0, 1)
     return _write_png(path, (scaled * 255).round().astype(np.uint8))
+
+
+#: The calibrated confidence previews' scale: ``P`` sits at ``log10(1 / (1 - P)) / CONFIDENCE_NINES``
+#: along the colour map (0 at ``P = 0``, one step per nine, the top at ``P = 0.99``), so that the
+#: probabilities near 1 that kept pixels have are told apart.
+CONFIDENCE_NINES = 2.0
+
+
+def _nines(p: np.ndarray) -> np.ndarray:
+    return np.clip(np.log10(1.0 / np.maximum(1.0 - p, 10.0**-CONFIDENCE_NINES)) / CONFIDENCE_NINES, 0, 1)
+
+
+def save_confidence_preview(path: str | os.PathLike, confidence: np.ndarray, tolerance: float | None) -> Path:
+    """PNG of a ``[H, W]`` confidence map (inferno colour map: black where the depth is likely wrong or
+    missing) with a colour bar strip of :data:`BAR_HEIGHT` rows below it. A calibrated map (``tolerance``:
+    the calibration's, ``P(|d - d_true| <= tolerance * d_true)``) is coloured on the fixed scale of
+    :data:`CONFIDENCE_NINES` and labelled "P(depth within X %)"; an uncalibrated one (``tolerance``
+    ``None``) linearly over ``[0, 1]`` and labelled "confidence score". Non-finite values are 0."""
+    values = np.clip(np.nan_to_num(_check_2d(confidence, path), nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+    if tolerance is None:
+        scaled, title = values, "confidence score"
+        ticks = [(0.0, "0"), (1.0, "1"), (0.5, "0.5")]
+    else:
+        scaled, title = _nines(values), f"P(depth within {100 * tolerance:g} %)"
+        ticks = [(float(_nines(np.float64(p))), f"{p:g}") for p in (0.0, 0.99, 0.9, 0.5)]
+    image = cv2.applyColorMap((scaled * 255).round().astype(np.uint8), cv2.COLORMAP_INFERNO)
+    return _write_png(path, _with_bar(image, colour_bar(values.shape[1], cv2.COLORMAP_INFERNO, ticks, title)))

@@ -28,6 +28,7 @@ from ..io.maps import (
     read_array,
     read_depth_map,
     read_normal_map,
+    save_confidence_preview,
     save_depth_preview,
     save_normal_preview,
     save_scalar_preview,
@@ -282,10 +283,19 @@ def _set_aside_colmaps_maps(out: PassPaths, stereo_dir: Path) -> None:
                        "is kept as NAME.bin.bak beside ours", stereo_dir, out.depth.name)
 
 
+def confidence_tolerance(settings: dict) -> float | None:
+    """The tolerance of the calibration a pass's confidence was made with, from its ``settings``
+    (``None``: uncalibrated scores)."""
+    calibration = settings.get("confidence_calibration")
+    return float(calibration["tolerance"]) if isinstance(calibration, dict) else None
+
+
 def write_previews(ref: Reference) -> None:
-    """PNG previews of ``ref``'s maps (``ref.maps`` of ``ref.stage``), coloured over ``ref.depth_range``:
-    depth (:func:`~colmap_pvs.stereo.reference.preview_path`), and but for the dense completion
-    normals, confidence and the learned visibility of each of ``ref.sources`` where the maps have it."""
+    """PNG previews of ``ref``'s maps (``ref.maps`` of ``ref.stage``): depth
+    (:func:`~colmap_pvs.stereo.reference.preview_path`) coloured over ``ref.depth_range``, and but for
+    the dense completion normals, confidence (on the scale of ``ref.record``'s calibration) and the
+    learned visibility of each of ``ref.sources`` where the maps have it. The depth and confidence
+    previews have a colour bar below them."""
     stage, maps, depth_path = ref.stage, ref.maps, ref.paths[ref.stage].preview
     stem = str(depth_path)[: -len(".depth.png")]
     save_depth_preview(depth_path, maps.depth, vmin=ref.depth_range[0], vmax=ref.depth_range[1])
@@ -293,7 +303,8 @@ def write_previews(ref: Reference) -> None:
         return
     if maps.normals is not None:
         save_normal_preview(f"{stem}.normal.png", maps.normals)
-    save_scalar_preview(f"{stem}.confidence.png", maps.confidence)
+    tolerance = confidence_tolerance(ref.record.settings)
+    save_confidence_preview(f"{stem}.confidence.png", maps.confidence, tolerance)
     for k, src in enumerate(ref.sources if maps.visibility is not None else ()):
         save_scalar_preview(ref.paths.visibility_preview(ref.name, k, src), maps.visibility[k])
 
@@ -314,14 +325,16 @@ def write_missing_previews(ref: Reference, stage: Stage) -> bool:
         maps = PassMaps(depth, np.zeros_like(depth))
     else:
         maps = PassMaps(depth, read_confidence(out.confidence, depth.shape), read_normal_map(out.normals))
-    sources = ()
+    sources, provenance = (), ref.provenance(stage) or {}
     if stage == "photometric":
-        recorded = (ref.provenance(stage) or {}).get("sources", [])
+        recorded = provenance.get("sources", [])
         vis = read_visibility(ref)
         if vis is not None and vis.shape[0] == len(recorded):
             sources = recorded
             maps = replace(maps, visibility=vis)
-    write_previews(ref.with_pass(stage, maps, PassRecord({}, {}), depth_range=depth_range, sources=sources))
+    settings = provenance.get("settings") if isinstance(provenance.get("settings"), dict) else {}
+    write_previews(ref.with_pass(stage, maps, PassRecord(settings, {}), depth_range=depth_range,
+                                 sources=sources))
     return True
 
 
