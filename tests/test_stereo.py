@@ -1261,6 +1261,23 @@ def test_the_geometric_too_close_warning_lists_a_source_that_sees_nothing_at_ang
     assert "(median angles: a.png 2, b.png 0)" in caplog.text
 
 
+def test_the_geometric_too_close_warning_needs_a_reference_depth_and_sources(caplog):
+    """No warning for a reference without any depth (nothing to confirm, whatever the angles) or
+    without sources (nothing to list)."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    ctx = SimpleNamespace(config=SimpleNamespace(geometric=SimpleNamespace(min_triangulation_angle=5.0)))
+    empty = SourceMaps(np.zeros((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    res = SimpleNamespace(checked=np.ones((2, 4, 4), bool), angle=np.full((2, 4, 4), 2.0, np.float32))
+    full = SourceMaps(np.ones((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], empty, res)
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", [], full, res)
+    assert caplog.text == ""
+
+
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
                                                                              tiny_checkpoint, caplog):
     """Sources all below geom_min_triangulation_angle give an empty geometric map: a WARNING names the
