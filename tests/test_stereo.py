@@ -555,8 +555,15 @@ def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(an
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
     assert prov["reestimated"] is False  # the photometric maps checked, not re-estimated
+    seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")  # within 2.5 %: the block seeds too
+    seeded = block & (seed_map > 0)
+    assert seeded.sum() > 0.3 * block.sum()
+    assert np.median(np.abs(seed_map[seeded] / truth[seeded] - 1)) < 0.01  # averaged, as the kept depth
     own, _ = geometric(geom_average_depth=False)
     np.testing.assert_array_equal(own[own > 0], photo[own > 0])
+    own_seeds = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")
+    assert (own_seeds > 0).any()
+    np.testing.assert_array_equal(own_seeds[own_seeds > 0], photo[own_seeds > 0])
     threshold = float(np.median(conf[geo > 0]))
     strict, strict_conf = geometric(geom_min_confidence=threshold)
     assert 0.2 * (geo > 0).sum() < (strict > 0).sum() < 0.8 * (geo > 0).sum()
