@@ -616,6 +616,24 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     stale = np.full((120, 160), 7.0, np.float32)
     ctx.seed_cache[sources[0]] = ("~" * 64, stereo_geometric.Checked(stale))  # "~" sorts after hex digits
     assert not np.array_equal(stereo_geometric._source_seeds(ctx, sources[0], setup), stale)
+    # On disk too: only a seed map under the wanted fingerprint is read; a broken one is made again.
+    name = sources[0]
+    fresh = stereo_geometric._source_seeds(ctx, name, setup)
+    seed_file = stereo_outputs.seed_map_path(ctx.workspace, name)
+    stamp = stereo_outputs.seed_provenance_path(ctx.workspace, name)
+    wanted = json.loads(stamp.read_text())["fingerprint"]
+    for broken in ("sorts_after", "map", "json", "no_json"):
+        ctx.seed_cache.clear()
+        stereo_outputs.write_seeds(ctx.workspace, name, stale, "~" * 64 if broken == "sorts_after" else wanted)
+        if broken == "map":
+            seed_file.write_bytes(seed_file.read_bytes()[:20])
+        elif broken == "json":
+            stamp.write_text("{")
+        elif broken == "no_json":
+            stamp.unlink()
+        np.testing.assert_array_equal(stereo_geometric._source_seeds(ctx, name, setup), fresh, err_msg=broken)
+        assert json.loads(stamp.read_text())["fingerprint"] == wanted  # and written again
+        np.testing.assert_array_equal(read_array(seed_file), fresh)
     ctx.close()
 
 
