@@ -1301,6 +1301,14 @@ def test_the_geometric_too_close_warning_needs_a_reference_depth_and_sources(cap
         stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], empty, res)
         stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", [], full, res)
     assert caplog.text == ""
+    # any positive limit warns (here 0.5 degrees, above every source's 0.2), 0 never
+    low = SimpleNamespace(checked=res.checked, angle=np.full((2, 4, 4), 0.2, np.float32))
+    for limit, warned in ((0.5, True), (0.0, False)):
+        ctx.config.geometric.min_triangulation_angle = limit
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+            stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], full, low)
+        assert ("(median angles: a.png 0.2, b.png 0.2)" in caplog.text) == warned, limit
 
 
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
