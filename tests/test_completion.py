@@ -438,8 +438,12 @@ def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     parallax[1, 0, 0] = 0.0
     weaker = geometric_confidence(agree, vis, None, parallax)
     np.testing.assert_allclose(weaker[0, 0], 0.8 * 1.5 / 4, rtol=1e-5)
-    with pytest.raises(ShapeError):
-        geometric_confidence(agree, vis, None, parallax[:2])
+    for wrong in (parallax[:2], np.concatenate([parallax, parallax[:1]])):  # fewer or more sources
+        with pytest.raises(ShapeError):
+            geometric_confidence(agree, vis, None, wrong)
+    # One agreeing source without visibility: full confidence; no sources: none (not 0 / 0).
+    np.testing.assert_array_equal(geometric_confidence(np.ones((1, 2, 3), bool), None), 1.0)
+    np.testing.assert_array_equal(geometric_confidence(np.zeros((0, 2, 3), bool), None), 0.0)
 
 
 def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):
