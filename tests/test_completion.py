@@ -441,6 +441,10 @@ def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     for wrong in (parallax[:2], np.concatenate([parallax, parallax[:1]])):  # fewer or more sources
         with pytest.raises(ShapeError):
             geometric_confidence(agree, vis, None, wrong)
+    # Full weight from a parallax of one pixel on (per PARALLAX_STEP of depth), half at half a pixel.
+    one = np.ones((1, 1, 2), bool)
+    np.testing.assert_allclose(geometric_confidence(one, None, None, np.array([[[1.0, 0.5]]], np.float32)),
+                               [[1.0, 0.5]], rtol=1e-6)
     # One agreeing source without visibility: full confidence; no sources: none (not 0 / 0).
     np.testing.assert_array_equal(geometric_confidence(np.ones((1, 2, 3), bool), None), 1.0)
     np.testing.assert_array_equal(geometric_confidence(np.zeros((0, 2, 3), bool), None), 0.0)

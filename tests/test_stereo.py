@@ -619,12 +619,12 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     # On disk too: only a seed map under the wanted fingerprint is read; a broken one is made again.
     name = sources[0]
     fresh = stereo_geometric._source_seeds(ctx, name, setup)
-    seed_file = stereo_outputs.seed_map_path(ctx.workspace, name)
-    stamp = stereo_outputs.seed_provenance_path(ctx.workspace, name)
+    paths = ctx.reference(name).paths
+    seed_file, stamp = paths.seeds, paths.seed_provenance
     wanted = json.loads(stamp.read_text())["fingerprint"]
     for broken in ("sorts_after", "map", "json", "no_json"):
         ctx.seed_cache.clear()
-        stereo_outputs.write_seeds(ctx.workspace, name, stale, "~" * 64 if broken == "sorts_after" else wanted)
+        stereo_outputs.write_seeds(paths, stale, "~" * 64 if broken == "sorts_after" else wanted)
         if broken == "map":
             seed_file.write_bytes(seed_file.read_bytes()[:20])
         elif broken == "json":
@@ -1309,6 +1309,40 @@ def test_the_geometric_too_close_warning_needs_a_reference_depth_and_sources(cap
         with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
             stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], full, low)
         assert ("(median angles: a.png 0.2, b.png 0.2)" in caplog.text) == warned, limit
+    ctx.config.geometric.min_triangulation_angle = 0.1  # a source at 0.2 degrees is far enough
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], full, low)
+    assert caplog.text == ""
+
+
+def test_geometric_seeds_need_enough_strictly_agreeing_sources_and_a_normal():
+    """The completion's seeds: pixels that ``geom_seed_min_consistent`` sources confirm within
+    ``geom_seed_depth_error``, at their own or the averaged depth; isolated ones (no normal) and the rest 0."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    h = w = 24
+    K = np.array([[20.0, 0, 12], [0, 20.0, 12], [0, 0, 1]])
+    ref = SourceMaps(np.full((h, w), 2.0, np.float32), None, K, np.eye(4)[:3])
+    agree = np.zeros((3, h, w), bool)
+    error = np.full((3, h, w), 0.01, np.float32)
+    agree[:, 2:12, 2:12] = True  # three sources within 1 %: seeds (where the block gives a normal)
+    agree[:2, 14:22, 2:12] = True  # two sources: not enough
+    agree[:, 14:22, 14:22] = True
+    error[:, 14:22, 14:22] = 0.03  # three sources, but beyond 2.5 %
+    agree[:, 4, 18] = True  # one isolated pixel: no normal
+    res = SimpleNamespace(agree=agree, depth_error=error, mean_depth=lambda d: np.full_like(d, 2.02))
+    for average, depth in ((False, 2.0), (True, 2.02)):
+        cfg = SimpleNamespace(geometric=SimpleNamespace(seed_depth_error=0.025, seed_min_consistent=3,
+                                                        average_depth=average))
+        seeds = stereo_geometric._seeds(cfg, ref, res)
+        assert seeds.dtype == np.float32 and seeds[6, 6] == np.float32(depth)
+        assert set(np.unique(seeds)) == {0.0, np.float32(depth)}
+        outside = np.ones((h, w), bool)
+        outside[2:12, 2:12] = False
+        assert not seeds[outside].any()  # the isolated pixel included
 
 
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
