@@ -19,7 +19,14 @@ from colmap_pvs.config import replace_config
 from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
-from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map, write_depth_map
+from colmap_pvs.io.maps import (
+    colorize_depth,
+    fusion_intrinsics,
+    read_array,
+    read_depth_map,
+    read_normal_map,
+    write_depth_map,
+)
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
@@ -151,6 +158,22 @@ def test_geometric_check_slots_skip_unrelated_network_sources(synthetic_ws, tmp_
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.close()
     assert json.loads(geo_prov.read_text())["sources"] == [*network_sources, next_best]
+    # One network source and three slots: the next two best views fill them.
+    ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_num_sources=3))
+    photo_prov = provenance / f"{ref}.photometric.json"
+    record = photo_prov.read_text()
+    photo_prov.write_text(json.dumps(dict(json.loads(record), sources=network_sources[:1])))
+    extra = [s for s in ctx.selection.references[ref].ranked_names if s != network_sources[0]]
+    assert len(extra) == 2 and stereo_geometric._check_setup(ctx, ref).sources == [network_sources[0], *extra]
+    photo_prov.write_text(record)
+    # Photometric maps without their provenance (COLMAP's), or a provenance without its depth map (a pass
+    # cut short): no check.
+    paths = ctx.reference(ref).paths["photometric"]
+    for moved in (paths.provenance, paths.depth):
+        moved.rename(tmp_path / "aside")
+        assert stereo_geometric._check_setup(ctx, ref) == "its photometric maps do not exist", moved
+        (tmp_path / "aside").rename(moved)
+    ctx.close()
 
 
 def test_image_without_points_is_skipped_not_fatal(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
@@ -491,6 +514,20 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     preview = cv2.imread(str(preview_path(load_workspace(ws)[0], ref, "geometric")))
     colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
     assert len(colours) > 50  # not one colour clipped at an end of the scale
+    nearest = np.unravel_index(np.argmin(np.where(geo > 0, geo, np.inf)), geo.shape)
+    lowest = colorize_depth(geo, geo[nearest], 2 * geo[nearest])[nearest]
+    np.testing.assert_array_equal(preview[nearest], lowest)  # the scale starts at the nearest depth
+    prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
+    assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
+    normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.geometric.bin")
+    np.testing.assert_array_equal(geo > 0, np.any(normals != 0, axis=-1))  # a depth only with a normal
+    # geom_min_confidence is inclusive for splatted pixels too.
+    least = float(conf[added].min())
+    ctx = stereo_module.prepare_stereo(replace_config(on, geom_min_confidence=least))
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    assert (geo[added & (conf == least)] > 0).all()
 
 
 def test_geometric_check_refuses_a_normal_map_of_another_size(analytic_scene, tmp_path, tiny_checkpoint):
@@ -555,6 +592,7 @@ def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(an
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
     assert prov["reestimated"] is False  # the photometric maps checked, not re-estimated
+    assert prov["splatted_fraction"] == 0 and "splat_seeds" not in prov["settings"]  # no splat asked
     seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")  # within 2.5 %: the block seeds too
     seeded = block & (seed_map > 0)
     assert seeded.sum() > 0.3 * block.sum()
@@ -607,6 +645,7 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     # A current pass whose seed map is missing is recomputed, its seed map written again.
     ctx = stereo_module.prepare_stereo(on)
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    assert not preview_path(ctx.workspace, ref, "geometric").exists()  # no previews asked
     (ws / "stereo" / "seed_maps" / f"{ref}.bin").unlink()
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.flush()
@@ -1318,7 +1357,8 @@ def test_the_geometric_too_close_warning_needs_a_reference_depth_and_sources(cap
 
 def test_geometric_seeds_need_enough_strictly_agreeing_sources_and_a_normal():
     """The completion's seeds: pixels that ``geom_seed_min_consistent`` sources confirm within
-    ``geom_seed_depth_error``, at their own or the averaged depth; isolated ones (no normal) and the rest 0."""
+    ``geom_seed_depth_error``, at their own or the averaged depth; isolated ones (no normal) and the rest
+    0."""
     from types import SimpleNamespace
 
     from colmap_pvs.consistency import SourceMaps
@@ -1343,6 +1383,36 @@ def test_geometric_seeds_need_enough_strictly_agreeing_sources_and_a_normal():
         outside = np.ones((h, w), bool)
         outside[2:12, 2:12] = False
         assert not seeds[outside].any()  # the isolated pixel included
+
+
+def test_a_geometric_check_is_reused_only_under_its_own_fingerprint():
+    """The check another reference's pass made is reused (a copy) only under the same seed fingerprint:
+    one that sorts before or after it (other settings) or seeds alone (read from disk) are not."""
+    from types import SimpleNamespace
+
+    seeds, depth, conf = (np.full((2, 3), v, np.float32) for v in (1.0, 2.0, 0.5))
+    ctx = SimpleNamespace(seed_cache={"a.png": ("5" * 64, stereo_geometric.Checked(seeds, depth, conf))})
+    for other in ("4" * 64, "6" * 64):
+        assert stereo_geometric._reused_check(ctx, "a.png", other, Timer()) is None
+    reused = stereo_geometric._reused_check(ctx, "a.png", "5" * 64, Timer())
+    np.testing.assert_array_equal(reused.depth, depth)
+    np.testing.assert_array_equal(reused.conf, conf)
+    assert reused.depth is not depth and reused.conf is not conf
+    ctx.seed_cache["a.png"] = ("5" * 64, stereo_geometric.Checked(seeds))
+    assert stereo_geometric._reused_check(ctx, "a.png", "5" * 64, Timer()) is None
+
+
+def test_the_seed_cache_keeps_the_most_recently_used(monkeypatch):
+    """At most ``SEED_CACHE_SIZE`` seed maps are kept: the least recently stored one goes first."""
+    from collections import OrderedDict
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(stereo_geometric, "SEED_CACHE_SIZE", 2)
+    ctx = SimpleNamespace(seed_cache=OrderedDict())
+    checked = stereo_geometric.Checked(np.zeros((2, 3), np.float32))
+    for name, kept in (("a", "a"), ("b", "ab"), ("c", "bc"), ("b", "cb"), ("d", "bd")):
+        stereo_geometric._remember_seeds(ctx, name, "f", checked)
+        assert "".join(ctx.seed_cache) == kept, name
 
 
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
