@@ -438,8 +438,16 @@ def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     parallax[1, 0, 0] = 0.0
     weaker = geometric_confidence(agree, vis, None, parallax)
     np.testing.assert_allclose(weaker[0, 0], 0.8 * 1.5 / 4, rtol=1e-5)
-    with pytest.raises(ShapeError):
-        geometric_confidence(agree, vis, None, parallax[:2])
+    for wrong in (parallax[:2], np.concatenate([parallax, parallax[:1]])):  # fewer or more sources
+        with pytest.raises(ShapeError):
+            geometric_confidence(agree, vis, None, wrong)
+    # Full weight from a parallax of one pixel on (per PARALLAX_STEP of depth), half at half a pixel.
+    one = np.ones((1, 1, 2), bool)
+    np.testing.assert_allclose(geometric_confidence(one, None, None, np.array([[[1.0, 0.5]]], np.float32)),
+                               [[1.0, 0.5]], rtol=1e-6)
+    # One agreeing source without visibility: full confidence; no sources: none (not 0 / 0).
+    np.testing.assert_array_equal(geometric_confidence(np.ones((1, 2, 3), bool), None), 1.0)
+    np.testing.assert_array_equal(geometric_confidence(np.zeros((0, 2, 3), bool), None), 0.0)
 
 
 def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):

@@ -19,7 +19,14 @@ from colmap_pvs.config import replace_config
 from colmap_pvs.errors import CheckpointError, ConfigError
 from colmap_pvs.fusion import FuseConfig, fuse
 from colmap_pvs.geometry import backproject_depth
-from colmap_pvs.io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map, write_depth_map
+from colmap_pvs.io.maps import (
+    colorize_depth,
+    fusion_intrinsics,
+    read_array,
+    read_depth_map,
+    read_normal_map,
+    write_depth_map,
+)
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
@@ -151,6 +158,22 @@ def test_geometric_check_slots_skip_unrelated_network_sources(synthetic_ws, tmp_
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.close()
     assert json.loads(geo_prov.read_text())["sources"] == [*network_sources, next_best]
+    # One network source and three slots: the next two best views fill them.
+    ctx = stereo_module.prepare_stereo(replace_config(cfg, geom_num_sources=3))
+    photo_prov = provenance / f"{ref}.photometric.json"
+    record = photo_prov.read_text()
+    photo_prov.write_text(json.dumps(dict(json.loads(record), sources=network_sources[:1])))
+    extra = [s for s in ctx.selection.references[ref].ranked_names if s != network_sources[0]]
+    assert len(extra) == 2 and stereo_geometric._check_setup(ctx, ref).sources == [network_sources[0], *extra]
+    photo_prov.write_text(record)
+    # Photometric maps without their provenance (COLMAP's), or a provenance without its depth map (a pass
+    # cut short): no check.
+    paths = ctx.reference(ref).paths["photometric"]
+    for moved in (paths.provenance, paths.depth):
+        moved.rename(tmp_path / "aside")
+        assert stereo_geometric._check_setup(ctx, ref) == "its photometric maps do not exist", moved
+        (tmp_path / "aside").rename(moved)
+    ctx.close()
 
 
 def test_image_without_points_is_skipped_not_fatal(synthetic_ws, tmp_path, tiny_checkpoint, caplog):
@@ -491,6 +514,20 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     preview = cv2.imread(str(preview_path(load_workspace(ws)[0], ref, "geometric")))[: geo.shape[0]]  # no bar
     colours = np.unique(preview[geo > 0].reshape(-1, 3), axis=0)
     assert len(colours) > 50  # not one colour clipped at an end of the scale
+    nearest = np.unravel_index(np.argmin(np.where(geo > 0, geo, np.inf)), geo.shape)
+    lowest = colorize_depth(geo, geo[nearest], 2 * geo[nearest])[nearest]
+    np.testing.assert_array_equal(preview[nearest], lowest)  # the scale starts at the nearest depth
+    prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
+    assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
+    normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.geometric.bin")
+    np.testing.assert_array_equal(geo > 0, np.any(normals != 0, axis=-1))  # a depth only with a normal
+    # geom_min_confidence is inclusive for splatted pixels too.
+    least = float(conf[added].min())
+    ctx = stereo_module.prepare_stereo(replace_config(on, geom_min_confidence=least))
+    assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
+    ctx.close()
+    geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
+    assert (geo[added & (conf == least)] > 0).all()
 
 
 def test_geometric_check_refuses_a_normal_map_of_another_size(analytic_scene, tmp_path, tiny_checkpoint):
@@ -555,8 +592,16 @@ def test_geometric_pass_averages_agreeing_depths_and_drops_unconfident_pixels(an
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
     assert prov["reestimated"] is False  # the photometric maps checked, not re-estimated
+    assert prov["splatted_fraction"] == 0 and "splat_seeds" not in prov["settings"]  # no splat asked
+    seed_map = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")  # within 2.5 %: the block seeds too
+    seeded = block & (seed_map > 0)
+    assert seeded.sum() > 0.3 * block.sum()
+    assert np.median(np.abs(seed_map[seeded] / truth[seeded] - 1)) < 0.01  # averaged, as the kept depth
     own, _ = geometric(geom_average_depth=False)
     np.testing.assert_array_equal(own[own > 0], photo[own > 0])
+    own_seeds = read_array(ws / "stereo" / "seed_maps" / f"{ref}.bin")
+    assert (own_seeds > 0).any()
+    np.testing.assert_array_equal(own_seeds[own_seeds > 0], photo[own_seeds > 0])
     threshold = float(np.median(conf[geo > 0]))
     strict, strict_conf = geometric(geom_min_confidence=threshold)
     assert 0.2 * (geo > 0).sum() < (strict > 0).sum() < 0.8 * (geo > 0).sum()
@@ -600,6 +645,7 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     # A current pass whose seed map is missing is recomputed, its seed map written again.
     ctx = stereo_module.prepare_stereo(on)
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "done"
+    assert not preview_path(ctx.workspace, ref, "geometric").exists()  # no previews asked
     (ws / "stereo" / "seed_maps" / f"{ref}.bin").unlink()
     assert stereo_module.process_reference(ctx, ref, "geometric").status == "computed"
     ctx.flush()
@@ -609,6 +655,24 @@ def test_geometric_pass_checks_each_reference_once_and_reuses_current_seeds(anal
     stale = np.full((120, 160), 7.0, np.float32)
     ctx.seed_cache[sources[0]] = ("~" * 64, stereo_geometric.Checked(stale))  # "~" sorts after hex digits
     assert not np.array_equal(stereo_geometric._source_seeds(ctx, sources[0], setup), stale)
+    # On disk too: only a seed map under the wanted fingerprint is read; a broken one is made again.
+    name = sources[0]
+    fresh = stereo_geometric._source_seeds(ctx, name, setup)
+    paths = ctx.reference(name).paths
+    seed_file, stamp = paths.seeds, paths.seed_provenance
+    wanted = json.loads(stamp.read_text())["fingerprint"]
+    for broken in ("sorts_after", "map", "json", "no_json"):
+        ctx.seed_cache.clear()
+        stereo_outputs.write_seeds(paths, stale, "~" * 64 if broken == "sorts_after" else wanted)
+        if broken == "map":
+            seed_file.write_bytes(seed_file.read_bytes()[:20])
+        elif broken == "json":
+            stamp.write_text("{")
+        elif broken == "no_json":
+            stamp.unlink()
+        np.testing.assert_array_equal(stereo_geometric._source_seeds(ctx, name, setup), fresh, err_msg=broken)
+        assert json.loads(stamp.read_text())["fingerprint"] == wanted  # and written again
+        np.testing.assert_array_equal(read_array(seed_file), fresh)
     ctx.close()
 
 
@@ -1278,6 +1342,96 @@ def test_the_geometric_too_close_warning_lists_a_source_that_sees_nothing_at_ang
     with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
         stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], ref, res)
     assert "(median angles: a.png 2, b.png 0)" in caplog.text
+
+
+def test_the_geometric_too_close_warning_needs_a_reference_depth_and_sources(caplog):
+    """No warning for a reference without any depth (nothing to confirm, whatever the angles) or
+    without sources (nothing to list)."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    ctx = SimpleNamespace(config=SimpleNamespace(geometric=SimpleNamespace(min_triangulation_angle=5.0)))
+    empty = SourceMaps(np.zeros((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    res = SimpleNamespace(checked=np.ones((2, 4, 4), bool), angle=np.full((2, 4, 4), 2.0, np.float32))
+    full = SourceMaps(np.ones((4, 4), np.float32), None, np.eye(3), np.eye(4)[:3])
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], empty, res)
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", [], full, res)
+    assert caplog.text == ""
+    # any positive limit warns (here 0.5 degrees, above every source's 0.2), 0 never
+    low = SimpleNamespace(checked=res.checked, angle=np.full((2, 4, 4), 0.2, np.float32))
+    for limit, warned in ((0.5, True), (0.0, False)):
+        ctx.config.geometric.min_triangulation_angle = limit
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+            stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], full, low)
+        assert ("(median angles: a.png 0.2, b.png 0.2)" in caplog.text) == warned, limit
+    ctx.config.geometric.min_triangulation_angle = 0.1  # a source at 0.2 degrees is far enough
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="colmap_pvs.stereo"):
+        stereo_geometric._warn_if_every_source_is_too_close(ctx, "r.png", ["a.png", "b.png"], full, low)
+    assert caplog.text == ""
+
+
+def test_geometric_seeds_need_enough_strictly_agreeing_sources_and_a_normal():
+    """The completion's seeds: pixels that ``geom_seed_min_consistent`` sources confirm within
+    ``geom_seed_depth_error``, at their own or the averaged depth; isolated ones (no normal) and the rest
+    0."""
+    from types import SimpleNamespace
+
+    from colmap_pvs.consistency import SourceMaps
+
+    h = w = 24
+    K = np.array([[20.0, 0, 12], [0, 20.0, 12], [0, 0, 1]])
+    ref = SourceMaps(np.full((h, w), 2.0, np.float32), None, K, np.eye(4)[:3])
+    agree = np.zeros((3, h, w), bool)
+    error = np.full((3, h, w), 0.01, np.float32)
+    agree[:, 2:12, 2:12] = True  # three sources within 1 %: seeds (where the block gives a normal)
+    agree[:2, 14:22, 2:12] = True  # two sources: not enough
+    agree[:, 14:22, 14:22] = True
+    error[:, 14:22, 14:22] = 0.03  # three sources, but beyond 2.5 %
+    agree[:, 4, 18] = True  # one isolated pixel: no normal
+    res = SimpleNamespace(agree=agree, depth_error=error, mean_depth=lambda d: np.full_like(d, 2.02))
+    for average, depth in ((False, 2.0), (True, 2.02)):
+        cfg = SimpleNamespace(geometric=SimpleNamespace(seed_depth_error=0.025, seed_min_consistent=3,
+                                                        average_depth=average))
+        seeds = stereo_geometric._seeds(cfg, ref, res)
+        assert seeds.dtype == np.float32 and seeds[6, 6] == np.float32(depth)
+        assert set(np.unique(seeds)) == {0.0, np.float32(depth)}
+        outside = np.ones((h, w), bool)
+        outside[2:12, 2:12] = False
+        assert not seeds[outside].any()  # the isolated pixel included
+
+
+def test_a_geometric_check_is_reused_only_under_its_own_fingerprint():
+    """The check another reference's pass made is reused (a copy) only under the same seed fingerprint:
+    one that sorts before or after it (other settings) or seeds alone (read from disk) are not."""
+    from types import SimpleNamespace
+
+    seeds, depth, conf = (np.full((2, 3), v, np.float32) for v in (1.0, 2.0, 0.5))
+    ctx = SimpleNamespace(seed_cache={"a.png": ("5" * 64, stereo_geometric.Checked(seeds, depth, conf))})
+    for other in ("4" * 64, "6" * 64):
+        assert stereo_geometric._reused_check(ctx, "a.png", other, Timer()) is None
+    reused = stereo_geometric._reused_check(ctx, "a.png", "5" * 64, Timer())
+    np.testing.assert_array_equal(reused.depth, depth)
+    np.testing.assert_array_equal(reused.conf, conf)
+    assert reused.depth is not depth and reused.conf is not conf
+    ctx.seed_cache["a.png"] = ("5" * 64, stereo_geometric.Checked(seeds))
+    assert stereo_geometric._reused_check(ctx, "a.png", "5" * 64, Timer()) is None
+
+
+def test_the_seed_cache_keeps_the_most_recently_used(monkeypatch):
+    """At most ``SEED_CACHE_SIZE`` seed maps are kept: the least recently stored one goes first."""
+    from collections import OrderedDict
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(stereo_geometric, "SEED_CACHE_SIZE", 2)
+    ctx = SimpleNamespace(seed_cache=OrderedDict())
+    checked = stereo_geometric.Checked(np.zeros((2, 3), np.float32))
+    for name, kept in (("a", "a"), ("b", "ab"), ("c", "bc"), ("b", "cb"), ("d", "bd")):
+        stereo_geometric._remember_seeds(ctx, name, "f", checked)
+        assert "".join(ctx.seed_cache) == kept, name
 
 
 def test_a_reference_whose_sources_are_all_too_close_is_named_in_a_warning(synthetic_ws, tmp_path,
