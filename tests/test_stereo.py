@@ -517,6 +517,9 @@ def test_geometric_pass_of_a_scene_nearer_than_one_unit(analytic_scene, tmp_path
     nearest = np.unravel_index(np.argmin(np.where(geo > 0, geo, np.inf)), geo.shape)
     lowest = colorize_depth(geo, geo[nearest], 2 * geo[nearest])[nearest]
     np.testing.assert_array_equal(preview[nearest], lowest)  # the scale starts at the nearest depth
+    farthest = np.unravel_index(np.argmax(geo), geo.shape)
+    highest = colorize_depth(geo, 0.5 * geo[farthest], geo[farthest])[farthest]
+    np.testing.assert_array_equal(preview[farthest], highest)  # and ends at the farthest, not at 2
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["kept_fraction"] == pytest.approx(float((geo > 0).mean()))
     normals = read_normal_map(ws / "stereo" / "normal_maps" / f"{ref}.geometric.bin")

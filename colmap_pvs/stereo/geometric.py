@@ -434,8 +434,9 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         normals = fit_normals(depth, ctx.map_K(name, (w, h)))
         depth[~np.any(normals != 0, axis=-1)] = 0.0
         conf[depth == 0] = 0.0
-    dr = entry.depth_range if entry is not None else (float(depth[depth > 0].min(initial=1.0)),
-                                                      float(depth.max(initial=2.0)))
+    kept = depth[depth > 0]  # the previews' scale without a view-selection entry: the kept depths'
+    dr = entry.depth_range if entry is not None else (
+        (float(kept.min()), float(kept.max())) if kept.size else (1.0, 2.0))
     extra = {"image_size": [w, h], "sources": setup.sources, "missing_sources": setup.missing,
              "kept_fraction": float((depth > 0).mean()), "splatted_fraction": splatted / depth.size,
              "reestimated": checked.reestimated}
