@@ -25,7 +25,11 @@ model, references and sources; a ``hololens_quick.py --stride 3 --tag TAG`` work
    valid GT pixel and is not more than ``--behind`` (10 cm) behind that GT surface; points in space
    no GT depth observes, like ETH3D's unobserved points, are left out); F1 their harmonic mean; at
    t = 2, 5, 10 cm.
-4. The per-frame check: each reference's % of GT pixels within 5 % relative error for the network map
+4. How each map kind's confidence ranks its errors (:func:`ranking`: ``evaluate depth``'s relative
+   AUSE, the AbsRel of the most confident pixels, the calibration error), and with
+   ``--min_confidence_curve 0 0.5 0.7 0.9`` the ``pvs`` cloud's accuracy / completeness / F1 at each
+   ``fuse --min_confidence`` (:func:`confidence_curve`): the curve that one number moves along.
+5. The per-frame check: each reference's % of GT pixels within 5 % relative error for the network map
    (``photometric``) and the completion (``filled``) (``colmap_pvs.evaluate.evaluate_depth``); a frame
    is flagged where the completion is more than ``--flag_points`` (5) points below the network map.
    ``--picture OUT.jpg``: the ``--picture_count`` worst frames, one row each: image | GT depth |
@@ -218,6 +222,40 @@ def read_points(path: Path) -> np.ndarray:
     return pts[np.isfinite(pts).all(axis=1)]
 
 
+def ranking(ws: Path, data: Path, refs: list[str]) -> dict:
+    """Per map kind with maps: how well its confidence ranks its errors (``evaluate depth``'s relative
+    AUSE, the AbsRel of the 30 % and 50 % most confident pixels and of all) and its calibration (ECE)."""
+    out = {}
+    for kind in ("photometric", "geometric", "filled"):
+        if not any((ws / "stereo" / "depth_maps").glob(f"*.{kind}.bin")):
+            continue
+        m = rd.evaluate_against_gt(ws, data, refs, kind)
+        sp = m.sparsification or {}
+        if not sp:
+            continue
+        at = dict(zip(sp["fractions"], sp["error"], strict=True))
+        out[kind] = {"relative_ause": sp.get("relative_ause"), "absrel_top30": at.get(0.3),
+                     "absrel_top50": at.get(0.5), "absrel": at.get(1.0),
+                     "ece": (m.calibration or {}).get("ece")}
+    return out
+
+
+def confidence_curve(ws: Path, colmap: str, levels: list[float], fuse_overrides: dict, gt_points: np.ndarray,
+                     views: list[GTView], behind: float) -> list[dict]:
+    """The accuracy / completeness curve of ``fuse`` along ``--min_confidence``: one cloud per level."""
+    rows = []
+    for level in levels:
+        path, fuse_s = run_fusion("pvs", ws, colmap, {**fuse_overrides, "min_confidence": level})
+        score = frustum_cloud_score(read_points(path), gt_points, views, THRESHOLDS, 0.01, behind)
+        score.update(min_confidence=level, fusion_seconds=fuse_s)
+        rows.append(score)
+        print(f"[min_confidence {level:g}] {score['num_points']} points, accuracy "
+              f"{fmt(score['accuracy_pct'])}, completeness {fmt(score['completeness_pct'])}, "
+              f"F1 {fmt(score['f1_pct'])}", flush=True)
+    path.unlink(missing_ok=True)  # the last level's cloud; the default's is cloud_pvs.ply
+    return rows
+
+
 def per_frame(ws: Path, data: Path, refs: list[str], flag_points: float) -> dict:
     """Per reference: % within 5 % of the network map and the completion; the flagged frames."""
     rows = {}
@@ -284,6 +322,8 @@ def main() -> int:
     p.add_argument("--picture", type=Path, help="JPEG of the worst frames")
     p.add_argument("--picture_count", type=int, default=3)
     p.add_argument("--json", type=Path, help="default: the workspace's cloud_benchmark.json")
+    p.add_argument("--min_confidence_curve", nargs="*", type=float, default=[], metavar="P",
+                   help="also fuse (pvs) at each of these --min_confidence: the accuracy/completeness curve")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     wall_start = time.perf_counter()
@@ -330,7 +370,10 @@ def main() -> int:
               f"{fuse_s if fuse_s is None else round(fuse_s)} s, score {score['score_seconds']:.0f} s",
               flush=True)
 
+    curve = confidence_curve(ws, a.colmap, a.min_confidence_curve, rd.parse_overrides(a.fuse), gt_points,
+                             views, a.behind)
     frames = per_frame(ws, a.data, refs, a.flag_points)
+    ranks = ranking(ws, a.data, refs)
     wall = time.perf_counter() - wall_start
     cm = " / ".join(f"{100 * t:.0f}" for t in THRESHOLDS)
     print(f"\n{a.tag}: {len(refs)} references, {a.max_image_size} px, N = {a.num_views}; GT cloud "
@@ -340,6 +383,20 @@ def main() -> int:
     for kind, s in clouds.items():
         print(f"| {kind} | {s['num_points']} | {s['observed_pct']:.1f} % | {fmt(s['accuracy_pct'])} | "
               f"{fmt(s['completeness_pct'])} | {fmt(s['f1_pct'])} |")
+    if curve:
+        print(f"\nfuse along --min_confidence (accuracy / completeness / F1 at {cm} cm, %)")
+        print("| min_confidence | points | accuracy | completeness | F1 |")
+        print("|---|---|---|---|---|")
+        for s in curve:
+            print(f"| {s['min_confidence']:g} | {s['num_points']} | {fmt(s['accuracy_pct'])} | "
+                  f"{fmt(s['completeness_pct'])} | {fmt(s['f1_pct'])} |")
+    print("\nconfidence per map kind: relative AUSE (0 = oracle, 1 = chance), AbsRel of the 30 % / 50 % most "
+          "confident / all, ECE")
+    print("| map | relative AUSE | AbsRel top 30 % / 50 % / all | ECE |")
+    print("|---|---|---|---|")
+    for kind, r in ranks.items():
+        print(f"| {kind} | {r['relative_ause']:.3f} | {r['absrel_top30']:.4f} / {r['absrel_top50']:.4f} / "
+              f"{r['absrel']:.4f} | {'-' if r['ece'] is None else format(r['ece'], '.3f')} |")
     pooled = frames["pooled"]
     print(f"\nper frame, % within 5 %: network pooled {pooled['photometric']:.1f} "
           f"(MAE {pooled['photometric_mae_mm']:.0f} mm), completion {pooled['filled']:.1f} "
@@ -358,6 +415,7 @@ def main() -> int:
         "commit": rd.git_commit(), "tag": a.tag, "references": refs, "max_image_size": a.max_image_size,
         "num_views": a.num_views, "stereo": rd.parse_overrides(a.stereo), "gt_voxel": a.gt_voxel,
         "behind": a.behind, "num_gt_points": len(gt_points), "clouds": clouds, "per_frame": frames,
+        "confidence_curve": curve, "ranking": ranks,
         "seconds": {"wall": wall, "stereo": stereo_s, "gt": gt_s},
     }, indent=1))
     print(f"json: {out}")

@@ -78,6 +78,9 @@ def report_depth(metrics, per_image: bool = True) -> str:
             f"{f:.0%}: {_fmt(e, '.4f')}/{_fmt(o, '.4f')}"
             for f, e, o in zip(sp["fractions"], sp["error"], sp["oracle"], strict=True)
         ))
+        if "relative_ause" in sp:
+            lines.append("relative AUSE (0 = the oracle's ranking, 1 = chance): "
+                         + _fmt(sp["relative_ause"], ".3f"))
     if metrics.calibration is not None:  # the confidence as a probability: predicted vs observed
         cal = metrics.calibration
         lines.append(f"confidence calibration (P(relative error <= {cal['tolerance']:g}); expected "

@@ -208,6 +208,7 @@ def test_evaluate_depth_reads_the_kind_it_is_asked_for(depth_case):
     assert m.per_image["b.jpg"].coverage_pct == pytest.approx(100.0)  # the geometric map has a hole
     # The confident half is b's exact pixels: the sparsification curve reads the filled confidence.
     assert m.sparsification["error"][m.sparsification["fractions"].index(0.5)] == pytest.approx(0.0, abs=1e-3)
+    assert m.sparsification["relative_ause"] < 0.01  # the oracle's ranking up to b's mm rounding
 
 
 def test_evaluate_depth_reports_how_well_calibrated_confidences_predict(depth_case, capsys):
@@ -437,6 +438,33 @@ def test_sparsification_curve_matches_the_oracle_for_perfect_confidence():
     assert random_rank["error"][4] > 1.5 * random_rank["oracle"][4]  # uniform errors: ~2x
     inverted = sparsification_curve(err, err)
     assert inverted["error"][0] > err.mean() > perfect["error"][0]
+
+
+def test_relative_ause_by_hand_on_four_pixels():
+    """Errors 1, 2, 3, 4 at fractions 1/4 ... 1: the oracle's curve 1, 1.5, 2, 2.5, chance 2.5 throughout
+    (area 1.5 + 1 + 0.5 = 3 between them); reversed 4, 3.5, 3, 2.5 (area 6: 2.0); the best two swapped
+    2, 1.5, 2, 2.5 (area 1: 1/3)."""
+    from colmap_pvs.evaluate import relative_ause
+
+    err = np.array([3.0, 1.0, 4.0, 2.0])
+    assert relative_ause(-err, err, steps=4) == pytest.approx(0.0)
+    assert relative_ause(err, err, steps=4) == pytest.approx(2.0)
+    assert relative_ause(np.array([2.0, 3.0, 0.0, 4.0]), err, steps=4) == pytest.approx(1 / 3)
+
+
+def test_relative_ause_is_zero_for_the_oracle_one_for_chance_and_more_for_an_inverted_ranking():
+    from colmap_pvs.evaluate import relative_ause
+
+    rng = np.random.default_rng(4)
+    err = rng.exponential(0.05, 20000)
+    assert relative_ause(-err, err) == pytest.approx(0.0, abs=1e-9)
+    assert relative_ause(rng.random(err.size), err) == pytest.approx(1.0, abs=0.05)
+    assert relative_ause(err, err) > 1.5
+    noisy = relative_ause(-err * np.exp(rng.normal(0, 1.0, err.size)), err)
+    assert 0.1 < noisy < 0.6  # a confidence that knows the error roughly ranks in between
+    assert np.isnan(relative_ause(np.ones(5), np.full(5, 0.1)))  # nothing to rank
+    with pytest.raises(ShapeError):
+        relative_ause(np.ones(3), np.ones(4))
 
 
 def test_thin_structure_mask_keeps_narrow_near_structures_only():

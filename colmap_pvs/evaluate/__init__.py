@@ -20,6 +20,7 @@ from .depth import (
     evaluate_depth,
     find_gt_depth,
     read_gt_depth,
+    relative_ause,
     sparsification_curve,
     thin_structure_mask,
 )
@@ -40,6 +41,7 @@ __all__ = [
     "evaluate_depth",
     "find_gt_depth",
     "read_gt_depth",
+    "relative_ause",
     "sparsification_curve",
     "thin_structure_mask",
 ]

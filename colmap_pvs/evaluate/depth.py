@@ -52,6 +52,7 @@ __all__ = [
     "evaluate_depth",
     "find_gt_depth",
     "read_gt_depth",
+    "relative_ause",
     "sparsification_curve",
     "thin_structure_mask",
 ]
@@ -477,6 +478,28 @@ def sparsification_curve(
     return out
 
 
+#: Fractions at which :func:`relative_ause` samples the sparsification curve (1 %, 2 %, ..., 100 %).
+AUSE_STEPS = 100
+
+
+def relative_ause(confidence: np.ndarray, error: np.ndarray, steps: int = AUSE_STEPS) -> float:
+    """Relative area under the sparsification error: the area between the sparsification curve of
+    ``error`` ranked by ``confidence`` and the oracle's (ranked by ``error`` itself), over the area
+    between a random ranking's (the mean error at every fraction) and the oracle's; both curves sampled
+    at fractions ``1 / steps, ..., 1`` (ties in pixel order). 0: the oracle's ranking; 1: chance;
+    above 1: worse than chance. ``nan`` without pixels or when every error is the same."""
+    confidence = np.asarray(confidence, np.float64).ravel()
+    error = np.asarray(error, np.float64).ravel()
+    if confidence.shape != error.shape:
+        raise ShapeError(f"confidence {confidence.shape} and error {error.shape} differ")
+    if error.size == 0:
+        return float("nan")
+    curve = sparsification_curve(confidence, error, tuple((i + 1) / steps for i in range(steps)))
+    ours, oracle = np.asarray(curve["error"]), np.asarray(curve["oracle"])
+    chance = float(np.sum(error.mean() - oracle))
+    return float(np.sum(ours - oracle) / chance) if chance > 0 else float("nan")
+
+
 def _calibration_tolerance(stereo_dir: Path, name: str, kind: str) -> float | None:
     """The relative tolerance that ``name``'s ``kind`` confidence is a probability for (from its
     provenance: ``colmap_pvs.confidence``); ``None`` for raw scores or without provenance."""
@@ -582,7 +605,7 @@ def evaluate_depth(config: EvaluateDepthConfig) -> DepthMetrics:
     sparsification = calibration = None
     if conf_err:
         conf, err = np.concatenate([c for c, _ in conf_err]), np.concatenate([e for _, e in conf_err])
-        sparsification = sparsification_curve(conf, err)
+        sparsification = {**sparsification_curve(conf, err), "relative_ause": relative_ause(conf, err)}
         if len(tolerances) == 1 and None not in tolerances:  # probabilities: how well they predict
             tolerance = tolerances.pop()
             calibration = {"tolerance": tolerance, **reliability(conf, err <= tolerance).to_dict()}
