@@ -99,14 +99,16 @@ def _street(num_views: int, step: float, seed: int):
 
 
 def build_scene(out: Path, num_views: int, width: int, height: int, step: float, seed: int,
-                num_points: int) -> dict:
+                points_per_view: int) -> dict:
     """Render the street into ``out/scene`` (images, ``cameras.npz``), unless it is there already."""
     scene_dir = out / "scene"
     meta_path = scene_dir / "scene.json"
-    want = dict(num_views=num_views, width=width, height=height, step=step, seed=seed, num_points=num_points)
-    if meta_path.is_file():
+    want = dict(num_views=num_views, width=width, height=height, step=step, seed=seed,
+                points_per_view=points_per_view)
+    if meta_path.is_file():  # a scene of more views serves too: the workspaces take its first views
         meta = json.loads(meta_path.read_text())
-        if {k: meta.get(k) for k in want} == want:
+        same = all(meta.get(k) == v for k, v in want.items() if k != "num_views")
+        if same and meta["num_views"] >= num_views:
             return meta
         sys.exit(f"{scene_dir} holds another scene ({meta}); remove it or pass another --out")
     from colmap_pvs.synthetic.cameras import CameraRig, intrinsics
@@ -133,10 +135,11 @@ def build_scene(out: Path, num_views: int, width: int, height: int, step: float,
         depths[v], normals[v] = view.depth, view.normals
         cv2.imwrite(str(tmp / "images" / f"{v:05d}.png"), images[v][..., ::-1])
     points = simulate_sparse_points(renderer, rig, images, depths, normals, np.random.default_rng([seed, 3]),
-                                    num_points)
+                                    points_per_view * num_views)
     np.savez(tmp / "cameras.npz", K=K, cam_from_world=poses, xyz=points.xyz, rgb=points.rgb,
              visibility=np.packbits(points.visibility, axis=1))
-    meta = {**want, "points": int(len(points.xyz)), "seconds": round(time.perf_counter() - t0, 1)}
+    meta = {**want, "num_points": points_per_view * num_views, "points": int(len(points.xyz)),
+            "seconds": round(time.perf_counter() - t0, 1)}
     (tmp / "scene.json").write_text(json.dumps(meta, indent=1) + "\n")
     os.replace(tmp, scene_dir)
     return meta
@@ -315,7 +318,7 @@ def main() -> None:
         sys.exit(f"{COLMAP} not found: drop the colmap step")
     scene_views = args.scene_views or max(args.views)
     meta = build_scene(args.out, scene_views, args.width, args.height, args.step, args.seed,
-                       args.points_per_view * scene_views)
+                       args.points_per_view)
     print(f"scene: {meta}", flush=True)
     for n in sorted(args.views):
         ws = build_workspace(args.out, n)
