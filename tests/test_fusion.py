@@ -523,13 +523,13 @@ def _spy_fuse(tmp_path: Path, monkeypatch, fail_at: int | None = None):
         live.append(weakref.ref(view))
         return view
 
-    def spied_check(config, ref, valid, srcs):
+    def spied_check(config, ref, valid, srcs, *pool):
         if fail_at is not None and len(seen) == fail_at:
             raise KeyboardInterrupt
         gc.collect()
         streamed = sum(p.stat().st_size for p in out.parent.glob(f".{out.name}.pvs-*.tmp"))
         seen.append((sum(r() is not None for r in live), streamed, len(used[0]._masks)))
-        return check(config, ref, valid, srcs)
+        return check(config, ref, valid, srcs, *pool)
 
     def spied_init(self):
         init(self)
@@ -567,3 +567,38 @@ def test_fuse_interrupted_leaves_no_temporary_and_no_cloud(tmp_path, monkeypatch
         fuse(config)
     assert seen[-1][1] > 0  # points had been streamed
     assert sorted(p.name for p in out.parent.iterdir()) == []
+
+
+def test_fuse_checks_a_references_sources_in_two_threads_with_the_same_bits(tmp_path, monkeypatch):
+    import threading
+    import time
+
+    from scenes import make_analytic_workspace
+
+    import colmap_pvs.fusion.pvs as pvs
+
+    gt = make_analytic_workspace(tmp_path / "ws", n_views=6, width=80, height=60, focal=75.0)
+    match, lock = pvs.match_points, threading.Lock()
+    running, most = [0], [0]
+
+    def slow_match(*args, **kwargs):  # how many checks run at once
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.01)
+        try:
+            return match(*args, **kwargs)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(pvs, "match_points", slow_match)
+    clouds = []
+    for threads in (1, 2):
+        monkeypatch.setattr(pvs, "MATCH_THREADS", threads, raising=False)
+        most[0] = 0
+        out = tmp_path / f"fused-{threads}.ply"
+        fuse(FuseConfig(workspace_path=gt["root"], output_path=out, input_type="geometric", num_sources=3))
+        assert most[0] == threads
+        clouds.append((out.read_bytes(), Path(str(out) + ".vis").read_bytes()))
+    assert len(clouds[0][0]) > 10_000 and clouds[0] == clouds[1]

@@ -25,10 +25,10 @@ Two methods:
     fused (temporary PLY body and ``.vis`` beside the output; the PLY header, which holds the count,
     is written last and the pair renamed into place together), so the cloud is never held; the maps
     held are an LRU of ``cache_size`` views at their stored resolution plus the next reference's
-    views, which a background thread loads while the current reference is checked (the second
-    core); a packed bit mask of used pixels is kept only for the views still to come as references.
-    What grows with the number of views: the sparse model and the view selection's ``[n, n]`` score
-    matrices (:mod:`colmap_pvs.views`).
+    views, which a background thread loads while the current reference is checked against its
+    sources in two threads (both cores); a packed bit mask of used pixels is kept only for the
+    views still to come as references. What grows with the number of views: the sparse model and
+    the view selection's ``[n, n]`` score matrices (:mod:`colmap_pvs.views`).
 
 ``colmap``
     ``pycolmap.stereo_fusion`` (COLMAP's own fusion) with defaults adapted to learned maps

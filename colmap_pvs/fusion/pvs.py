@@ -33,6 +33,9 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["PointCloud", "fuse_pvs"]
 
+# Threads that check one reference's sources (both cores; a third, the prefetch, mostly waits on reads).
+MATCH_THREADS = 2
+
 # --------------------------------------------------------------------------- pvs fusion: the views
 
 
@@ -209,11 +212,13 @@ class _ReferencePoints:
 
 
 def _fuse_reference(
-    config: FuseConfig, ref: _View, valid: np.ndarray, srcs: list[tuple[str, _View]]
+    config: FuseConfig, ref: _View, valid: np.ndarray, srcs: list[tuple[str, _View]],
+    pool: ThreadPoolExecutor | None = None,
 ) -> _ReferencePoints:
     """The pixels of ``ref`` (those ``valid`` ``[h, w]``) that enough of its sources ``srcs`` (``(name,
     view)``) agree with (:func:`colmap_pvs.consistency.match_points`), as points averaged over the
-    reference pixel and the agreeing source pixels."""
+    reference pixel and the agreeing source pixels. With ``pool`` the sources are checked in its
+    threads; their matches are summed in the sources' order all the same (the same bits)."""
     rows, cols = np.nonzero(valid)
     d = ref.depth[rows, cols].astype(np.float64)
     x_ref = backproject_pixels(rows, cols, d, ref.K)  # reference camera frame
@@ -222,9 +227,14 @@ def _fuse_reference(
     sum_rgb = ref.rgb[rows, cols].astype(np.float64)
     count = np.zeros(len(d), dtype=np.int64)
     per_source = []
-    for src_name, src in srcs:
-        match = match_points(x_ref, rows, cols, ref.K, ref.cam_from_world, src,
-                             max_reproj_error=config.max_reproj_error, max_depth_error=config.max_depth_error)
+
+    def check(src: _View):
+        return match_points(x_ref, rows, cols, ref.K, ref.cam_from_world, src,
+                            max_reproj_error=config.max_reproj_error, max_depth_error=config.max_depth_error)
+
+    views = [src for _, src in srcs]
+    matches = pool.map(check, views) if pool is not None and len(views) > 1 else map(check, views)
+    for (src_name, src), match in zip(srcs, matches, strict=True):
         idx, rs, cs = match.index, match.rows, match.cols
         count[idx] += 1
         sum_x[idx] += match.points
@@ -328,14 +338,16 @@ def fuse_pvs(
 ) -> PointCloud:
     """The cloud of ``names`` (streamed to temporaries beside ``result.output_path``; :meth:`PointCloud.write`
     puts it in place): per reference, its views loaded (LRU, the next reference's prefetched), its
-    unused valid pixels checked against its sources, the agreeing ones added to the cloud and their
-    source pixels marked used. A reference or source whose maps are unusable is skipped with a
-    warning (in ``result.skipped``); ``result.points_per_image`` counts each reference's points."""
+    unused valid pixels checked against its sources (in ``MATCH_THREADS`` threads), the agreeing ones
+    added to the cloud and their source pixels marked used. A reference or source whose maps are
+    unusable is skipped with a warning (in ``result.skipped``); ``result.points_per_image`` counts each
+    reference's points."""
     sources = _sources_for(ws, model, names, config.num_sources)
     views = _ViewCache(functools.partial(_load_view, config, ws, model), config.cache_size)
     used = _UsedPixels()
     cloud = PointCloud(image_indices(ws.sparse_dir, model), result.output_path)
     to_come = Counter(names)  # references still to be fused, by name
+    pool = ThreadPoolExecutor(MATCH_THREADS, thread_name_prefix="fuse-match") if MATCH_THREADS > 1 else None
     try:
         for i, name in enumerate(tqdm(names, desc="fuse", unit="image")):
             to_come[name] -= 1
@@ -361,7 +373,7 @@ def fuse_pvs(
             valid = used.unused(name, ref.depth > 0)
             if not to_come[name]:
                 used.retire(name)
-            points = _fuse_reference(config, ref, valid, srcs)
+            points = _fuse_reference(config, ref, valid, srcs, pool)
             result.points_per_image[name] = len(points)
             if not len(points):
                 continue
@@ -376,4 +388,6 @@ def fuse_pvs(
         raise
     finally:
         views.close()
+        if pool is not None:
+            pool.shutdown(wait=True)
     return cloud
