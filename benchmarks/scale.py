@@ -4,6 +4,7 @@ on a synthetic street of up to 1,000 views (and more), time and peak memory per 
     python benchmarks/scale.py                                  # 100, 300, 1000 views, every step
     python benchmarks/scale.py --views 100 300 --steps select fuse colmap
     python benchmarks/scale.py --views 100 300 1000 --record    # append the table to benchmarks/RESULTS.md
+    OLD_VENV/bin/python benchmarks/scale.py --steps fuse --label=-before   # that venv's colmap-pvs beside
 
 The scene (:func:`_street`): a 2.5 m high facade with recesses and protruding boxes along a
 straight street, a pavement in front, pillars between the facade and the path; the cameras walk
