@@ -496,3 +496,109 @@ def test_colmap_poisson_mesher_reads_our_cloud(workspace):
     assert proc.returncode == 0, proc.stderr[-2000:]
     vertices, faces = read_mesh(out)
     assert len(vertices) > 100 and len(faces) > 100
+
+
+# --------------------------------------------------------------------------- bounded memory
+
+
+def _spy_fuse(tmp_path: Path, monkeypatch, fail_at: int | None = None):
+    """Fuse a 10-view analytic workspace (cache of 2 views, 2 sources) and record, before each reference
+    is checked, the views alive, the PLY body bytes streamed to disk so far and the used-pixel masks."""
+    import gc
+    import weakref
+
+    from scenes import make_analytic_workspace
+
+    import colmap_pvs.fusion.pvs as pvs
+
+    gt = make_analytic_workspace(tmp_path / "ws", n_views=10, width=80, height=60, focal=75.0)
+    out = tmp_path / "out" / "fused.ply"
+    live: list[weakref.ref] = []
+    used: list = []
+    seen: list[tuple[int, int, int]] = []
+    load, check, init = pvs._load_view, pvs._fuse_reference, pvs._UsedPixels.__init__
+
+    def counted_load(*args):
+        view = load(*args)
+        live.append(weakref.ref(view))
+        return view
+
+    def spied_check(config, ref, valid, srcs, *pool):
+        if fail_at is not None and len(seen) == fail_at:
+            raise KeyboardInterrupt
+        gc.collect()
+        streamed = sum(p.stat().st_size for p in out.parent.glob(f".{out.name}.pvs-*.tmp"))
+        seen.append((sum(r() is not None for r in live), streamed, len(used[0]._masks)))
+        return check(config, ref, valid, srcs, *pool)
+
+    def spied_init(self):
+        init(self)
+        used.append(self)
+
+    monkeypatch.setattr(pvs, "_load_view", counted_load)
+    monkeypatch.setattr(pvs, "_fuse_reference", spied_check)
+    monkeypatch.setattr(pvs._UsedPixels, "__init__", spied_init)
+    config = FuseConfig(workspace_path=gt["root"], output_path=out, input_type="geometric", cache_size=2,
+                        num_sources=2, min_consistent_views=1)
+    return config, out, seen, used
+
+
+def test_fuse_streams_the_points_to_disk_and_holds_a_bounded_number_of_views_and_masks(tmp_path, monkeypatch):
+    config, out, seen, used = _spy_fuse(tmp_path, monkeypatch)
+    result = fuse(config)
+    names = list(result.points_per_image)
+    assert len(names) == 10 and result.num_points > 1000
+    before = np.cumsum([0] + [result.points_per_image[n] for n in names[:-1]])
+    record = 27  # bytes per point: float x y z nx ny nz, uchar r g b
+    # Each reference's points are on disk before the next one is checked: the cloud is never held.
+    assert [s for _, s, _ in seen] == [record * int(b) for b in before]
+    # Views alive: the LRU (2), the reference and its 2 sources, the next reference's 3 being prefetched.
+    assert max(v for v, _, _ in seen) <= config.cache_size + 2 * (1 + config.num_sources)
+    # A view's used-pixel mask is dropped once it was the reference: none is left at the end.
+    assert len(used[0]._masks) == 0 and max(m for _, _, m in seen) <= config.num_sources * 2
+    header = out.read_bytes()[:300]
+    assert out.stat().st_size == header.index(b"end_header\n") + 11 + record * result.num_points
+    assert not list(out.parent.glob("*.tmp"))
+
+
+def test_fuse_interrupted_leaves_no_temporary_and_no_cloud(tmp_path, monkeypatch):
+    config, out, seen, _ = _spy_fuse(tmp_path, monkeypatch, fail_at=4)
+    with pytest.raises(KeyboardInterrupt):
+        fuse(config)
+    assert seen[-1][1] > 0  # points had been streamed
+    assert sorted(p.name for p in out.parent.iterdir()) == []
+
+
+def test_fuse_checks_a_references_sources_in_two_threads_with_the_same_bits(tmp_path, monkeypatch):
+    import threading
+    import time
+
+    from scenes import make_analytic_workspace
+
+    import colmap_pvs.fusion.pvs as pvs
+
+    gt = make_analytic_workspace(tmp_path / "ws", n_views=6, width=80, height=60, focal=75.0)
+    match, lock = pvs.match_points, threading.Lock()
+    running, most = [0], [0]
+
+    def slow_match(*args, **kwargs):  # how many checks run at once
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.01)
+        try:
+            return match(*args, **kwargs)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(pvs, "match_points", slow_match)
+    clouds = []
+    for threads in (1, 2):
+        monkeypatch.setattr(pvs, "MATCH_THREADS", threads, raising=False)
+        most[0] = 0
+        out = tmp_path / f"fused-{threads}.ply"
+        fuse(FuseConfig(workspace_path=gt["root"], output_path=out, input_type="geometric", num_sources=3))
+        assert most[0] == threads
+        clouds.append((out.read_bytes(), Path(str(out) + ".vis").read_bytes()))
+    assert len(clouds[0][0]) > 10_000 and clouds[0] == clouds[1]

@@ -21,8 +21,14 @@ Two methods:
     The check is :func:`colmap_pvs.consistency.match_points` (why it is not the geometric pass's
     :func:`~colmap_pvs.consistency.check_consistency`: :mod:`colmap_pvs.consistency`).
 
-    Memory: one reference plus an LRU of ``cache_size`` source maps at their stored
-    resolution; per image only a packed bit mask of used pixels is kept.
+    Memory is bounded, by streaming: the points of each reference go to disk as soon as it is
+    fused (temporary PLY body and ``.vis`` beside the output; the PLY header, which holds the count,
+    is written last and the pair renamed into place together), so the cloud is never held; the maps
+    held are an LRU of ``cache_size`` views at their stored resolution plus the next reference's
+    views, which a background thread loads while the current reference is checked against its
+    sources in two threads (both cores); a packed bit mask of used pixels is kept only for the
+    views still to come as references. What grows with the number of views: the sparse model and
+    the view selection's ``[n, n]`` score matrices (:mod:`colmap_pvs.views`).
 
 ``colmap``
     ``pycolmap.stereo_fusion`` (COLMAP's own fusion) with defaults adapted to learned maps
@@ -257,11 +263,14 @@ def fuse(config: FuseConfig) -> FuseResult:
     if config.method == "colmap":
         _fuse_colmap(config, ws, names, result)
     else:
-        cloud = fuse_pvs(config, ws, model, names, result)
-        if not len(cloud):  # before anything is written or set aside: an existing cloud stays as it was
-            raise _no_points_error(config, ws, names, result)
-        _set_aside_foreign_cloud(out)
-        cloud.write(out)  # the PLY and its .vis together or not at all
+        cloud = fuse_pvs(config, ws, model, names, result)  # streamed to temporaries beside `out`
+        try:
+            if not len(cloud):  # before anything is written or set aside: an existing cloud stays as it was
+                raise _no_points_error(config, ws, names, result)
+            _set_aside_foreign_cloud(out)
+            cloud.write()  # the PLY and its .vis together or not at all
+        finally:
+            cloud.discard()
         result.num_points = len(cloud)
     record_written_output(out, vis_path_of(out))
     result.num_images = len(names)

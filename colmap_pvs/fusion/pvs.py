@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from ..errors import MapFormatError, WorkspaceError
 from ..geometry import rowmul
 from ..io.images import load_image
 from ..io.maps import fusion_intrinsics, read_array, read_depth_map, read_normal_map
-from ..io.ply import write_cloud_pair
+from ..io.ply import CloudPairStream
 from ..io.sparse import image_indices
 from ..io.workspace import Workspace, read_patch_match_cfg
 from ..normals import fit_normals
@@ -31,6 +32,9 @@ from .config import FuseConfig, FuseResult
 logger = logging.getLogger(__name__)
 
 __all__ = ["PointCloud", "fuse_pvs"]
+
+# Threads that check one reference's sources (both cores; a third, the prefetch, mostly waits on reads).
+MATCH_THREADS = 2
 
 # --------------------------------------------------------------------------- pvs fusion: the views
 
@@ -116,22 +120,50 @@ def _load_view(config: FuseConfig, ws: Workspace, model: SparseModel, name: str)
 
 class _ViewCache:
     """The views by name, loaded on first use and kept in an LRU of ``size`` (memory stays bounded on
-    large scenes)."""
+    large scenes). :meth:`prefetch` loads the next reference's views in a background thread while the
+    current one is checked (reading and decoding release the GIL): at most ``size`` views in the LRU
+    plus those of one reference in flight. A view that failed to load raises in :meth:`get`, in the
+    caller's thread, as without the prefetch."""
 
     def __init__(self, loader: Callable[[str], _View], size: int) -> None:
         self._loader = loader
         self._size = size
         self._items: OrderedDict[str, _View] = OrderedDict()
+        self._pending: dict[str, Future] = {}
+        self._pool: ThreadPoolExecutor | None = None
+
+    def __len__(self) -> int:
+        return len(self._items)
 
     def get(self, name: str) -> _View:
         if name in self._items:
             self._items.move_to_end(name)
             return self._items[name]
-        view = self._loader(name)
+        pending = self._pending.pop(name, None)
+        view = pending.result() if pending is not None else self._loader(name)
         self._items[name] = view
         while len(self._items) > self._size:
             self._items.popitem(last=False)
         return view
+
+    def prefetch(self, names: list[str]) -> None:
+        """Start loading those of ``names`` not held (in order); loads pending for other names are dropped."""
+        wanted = set(names)
+        for name in [n for n in self._pending if n not in wanted]:
+            self._pending.pop(name).cancel()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fuse-prefetch")
+        for name in names:
+            if name not in self._items and name not in self._pending:
+                self._pending[name] = self._pool.submit(self._loader, name)
+
+    def close(self) -> None:
+        for future in self._pending.values():
+            future.cancel()
+        self._pending.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
 
 def _sources_for(ws: Workspace, model: SparseModel, names: list[str], num: int) -> dict[str, list[str]]:
@@ -180,11 +212,13 @@ class _ReferencePoints:
 
 
 def _fuse_reference(
-    config: FuseConfig, ref: _View, valid: np.ndarray, srcs: list[tuple[str, _View]]
+    config: FuseConfig, ref: _View, valid: np.ndarray, srcs: list[tuple[str, _View]],
+    pool: ThreadPoolExecutor | None = None,
 ) -> _ReferencePoints:
     """The pixels of ``ref`` (those ``valid`` ``[h, w]``) that enough of its sources ``srcs`` (``(name,
     view)``) agree with (:func:`colmap_pvs.consistency.match_points`), as points averaged over the
-    reference pixel and the agreeing source pixels."""
+    reference pixel and the agreeing source pixels. With ``pool`` the sources are checked in its
+    threads; their matches are summed in the sources' order all the same (the same bits)."""
     rows, cols = np.nonzero(valid)
     d = ref.depth[rows, cols].astype(np.float64)
     x_ref = backproject_pixels(rows, cols, d, ref.K)  # reference camera frame
@@ -193,9 +227,14 @@ def _fuse_reference(
     sum_rgb = ref.rgb[rows, cols].astype(np.float64)
     count = np.zeros(len(d), dtype=np.int64)
     per_source = []
-    for src_name, src in srcs:
-        match = match_points(x_ref, rows, cols, ref.K, ref.cam_from_world, src,
-                             max_reproj_error=config.max_reproj_error, max_depth_error=config.max_depth_error)
+
+    def check(src: _View):
+        return match_points(x_ref, rows, cols, ref.K, ref.cam_from_world, src,
+                            max_reproj_error=config.max_reproj_error, max_depth_error=config.max_depth_error)
+
+    views = [src for _, src in srcs]
+    matches = pool.map(check, views) if pool is not None and len(views) > 1 else map(check, views)
+    for (src_name, src), match in zip(srcs, matches, strict=True):
         idx, rs, cs = match.index, match.rows, match.cols
         count[idx] += 1
         sum_x[idx] += match.points
@@ -225,10 +264,16 @@ def _fuse_reference(
 
 class _UsedPixels:
     """Per view a packed bit mask of the pixels already fused as agreeing source pixels (``deduplicate``):
-    they are not fused again when that view is the reference."""
+    they are not fused again when that view is the reference. A view's mask is dropped once it was
+    the reference for the last time (:meth:`retire`) and is not made again: only the views still to
+    come as references hold one (on a path-like capture, the neighbours ahead)."""
 
     def __init__(self) -> None:
         self._masks: dict[str, np.ndarray] = {}
+        self._retired: set[str] = set()
+
+    def __len__(self) -> int:
+        return len(self._masks)
 
     def unused(self, name: str, valid: np.ndarray) -> np.ndarray:
         """``valid`` ``[h, w]`` less the used pixels of ``name``."""
@@ -237,8 +282,15 @@ class _UsedPixels:
             valid &= ~np.unpackbits(self._masks[name], count=h * w).reshape(h, w).astype(bool)
         return valid
 
+    def retire(self, name: str) -> None:
+        """``name`` will not be a reference again: its mask is not needed any more."""
+        self._masks.pop(name, None)
+        self._retired.add(name)
+
     def mark(self, name: str, shape: tuple[int, int], flat: np.ndarray) -> None:
         """Mark the pixels ``flat`` (row-major indices) of ``name`` (a map of ``shape``) used."""
+        if name in self._retired:
+            return
         sh, sw = shape
         mask = (
             np.unpackbits(self._masks[name], count=sh * sw).astype(bool)
@@ -250,75 +302,92 @@ class _UsedPixels:
 
 
 class PointCloud:
-    """The fused points in chunks, one per reference, with their visibility as COLMAP's ``.vis``
-    numbers the images (``index_of``)."""
+    """The fused points, streamed to disk one reference at a time (:class:`colmap_pvs.io.ply.CloudPairStream`
+    beside ``path``), with their visibility as COLMAP's ``.vis`` numbers the images (``index_of``)."""
 
-    def __init__(self, index_of: dict[str, int]) -> None:
+    def __init__(self, index_of: dict[str, int], path: Path) -> None:
         self._index_of = index_of
-        self._xyz: list[np.ndarray] = []
-        self._normals: list[np.ndarray] = []
-        self._rgb: list[np.ndarray] = []
-        self._counts: list[np.ndarray] = []
-        self._vis: list[np.ndarray] = []
+        self._stream = CloudPairStream(path)
 
     def add(self, name: str, points: _ReferencePoints) -> None:
         """The points of reference ``name``, seen by it and by the sources that agreed with each."""
-        self._xyz.append(points.xyz.astype(np.float32))
-        self._normals.append(points.normals.astype(np.float32))
-        self._rgb.append(points.rgb)
         # Visibility as a dense [P, 1 + n_sources] table of image indices (-1 = not visible).
         vis = np.full((len(points), 1 + len(points.per_source)), -1, dtype=np.int64)
         vis[:, 0] = self._index_of[name]
         for k, (src_name, point_idx, _) in enumerate(points.per_source):
             vis[point_idx, k + 1] = self._index_of[src_name]
-        self._counts.append((vis >= 0).sum(axis=1))
-        self._vis.append(vis[vis >= 0])
+        counts = (vis >= 0).sum(axis=1)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._stream.append(points.xyz.astype(np.float32), points.normals.astype(np.float32), points.rgb,
+                            offsets, vis[vis >= 0])
 
     def __len__(self) -> int:
-        return sum(len(x) for x in self._xyz)
+        return len(self._stream)
 
-    def write(self, path: Path) -> None:
-        """The PLY and its ``.vis``, together or not at all."""
-        counts = np.concatenate(self._counts)
-        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        write_cloud_pair(path, np.concatenate(self._xyz), np.concatenate(self._normals),
-                         np.concatenate(self._rgb), offsets, np.concatenate(self._vis))
+    def write(self) -> None:
+        """The PLY and its ``.vis`` in place, together or not at all."""
+        self._stream.commit()
+
+    def discard(self) -> None:
+        """Remove what was streamed (nothing after :meth:`write`)."""
+        self._stream.discard()
 
 
 def fuse_pvs(
     config: FuseConfig, ws: Workspace, model: SparseModel, names: list[str], result: FuseResult
 ) -> PointCloud:
-    """The cloud of ``names``: per reference, its views loaded (LRU), its unused valid pixels checked
-    against its sources, the agreeing ones added to the cloud and their source pixels marked used. A
-    reference or source whose maps are unusable is skipped with a warning (in ``result.skipped``);
-    ``result.points_per_image`` counts each reference's points."""
+    """The cloud of ``names`` (streamed to temporaries beside ``result.output_path``; :meth:`PointCloud.write`
+    puts it in place): per reference, its views loaded (LRU, the next reference's prefetched), its
+    unused valid pixels checked against its sources (in ``MATCH_THREADS`` threads), the agreeing ones
+    added to the cloud and their source pixels marked used. A reference or source whose maps are
+    unusable is skipped with a warning (in ``result.skipped``); ``result.points_per_image`` counts each
+    reference's points."""
     sources = _sources_for(ws, model, names, config.num_sources)
     views = _ViewCache(functools.partial(_load_view, config, ws, model), config.cache_size)
     used = _UsedPixels()
-    cloud = PointCloud(image_indices(ws.sparse_dir, model))
-    for name in tqdm(names, desc="fuse", unit="image"):
-        try:
-            ref = views.get(name)
-        except (MapFormatError, WorkspaceError) as exc:
-            logger.warning("fusion: skipping %s: %s", name, exc)
-            result.skipped[name] = str(exc)
-            continue
-        srcs = []
-        for src_name in sources.get(name, []):
-            if src_name in result.skipped:
-                continue
+    cloud = PointCloud(image_indices(ws.sparse_dir, model), result.output_path)
+    to_come = Counter(names)  # references still to be fused, by name
+    pool = ThreadPoolExecutor(MATCH_THREADS, thread_name_prefix="fuse-match") if MATCH_THREADS > 1 else None
+    try:
+        for i, name in enumerate(tqdm(names, desc="fuse", unit="image")):
+            to_come[name] -= 1
             try:
-                srcs.append((src_name, views.get(src_name)))
+                ref = views.get(name)
             except (MapFormatError, WorkspaceError) as exc:
-                logger.warning("fusion: source %s unusable: %s", src_name, exc)
-        points = _fuse_reference(config, ref, used.unused(name, ref.depth > 0), srcs)
-        result.points_per_image[name] = len(points)
-        if not len(points):
-            continue
-        cloud.add(name, points)
-        if config.deduplicate:
-            shapes = {src_name: src.shape for src_name, src in srcs}
-            for src_name, _, flat in points.per_source:
-                if flat.size:
-                    used.mark(src_name, shapes[src_name], flat)
+                logger.warning("fusion: skipping %s: %s", name, exc)
+                result.skipped[name] = str(exc)
+                if not to_come[name]:
+                    used.retire(name)
+                continue
+            srcs = []
+            for src_name in sources.get(name, []):
+                if src_name in result.skipped:
+                    continue
+                try:
+                    srcs.append((src_name, views.get(src_name)))
+                except (MapFormatError, WorkspaceError) as exc:
+                    logger.warning("fusion: source %s unusable: %s", src_name, exc)
+            if i + 1 < len(names):
+                following = [names[i + 1], *sources.get(names[i + 1], [])]
+                views.prefetch([n for n in following if n not in result.skipped])
+            valid = used.unused(name, ref.depth > 0)
+            if not to_come[name]:
+                used.retire(name)
+            points = _fuse_reference(config, ref, valid, srcs, pool)
+            result.points_per_image[name] = len(points)
+            if not len(points):
+                continue
+            cloud.add(name, points)
+            if config.deduplicate:
+                shapes = {src_name: src.shape for src_name, src in srcs}
+                for src_name, _, flat in points.per_source:
+                    if flat.size:
+                        used.mark(src_name, shapes[src_name], flat)
+    except BaseException:
+        cloud.discard()
+        raise
+    finally:
+        views.close()
+        if pool is not None:
+            pool.shutdown(wait=True)
     return cloud

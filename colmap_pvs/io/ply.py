@@ -39,6 +39,7 @@ __all__ = [
     "write_visibility",
     "read_visibility",
     "write_cloud_pair",
+    "CloudPairStream",
     "commit_cloud_pair",
     "cloud_pair_is_complete",
     "vis_path_of",
@@ -87,9 +88,27 @@ def _check_rows(name: str, array: np.ndarray | None, n: int, path: Path) -> None
         raise ShapeError(f"cannot write {str(path)!r}: {name} must be [{n}, 3], got shape {array.shape}")
 
 
-def _point_cloud_bytes(
+_CLOUD_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+     ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+)
+
+
+def _cloud_header(n: int) -> bytes:
+    return (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property float nx\nproperty float ny\nproperty float nz\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "end_header\n"
+    ).encode("ascii")
+
+
+def _point_records(
     path: Path, xyz: np.ndarray, normals: np.ndarray | None, colors: np.ndarray | None
 ) -> bytes:
+    """The PLY body of the points (no header)."""
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ShapeError(f"cannot write {str(path)!r}: xyz must be [N, 3], got shape {xyz.shape}")
@@ -98,20 +117,7 @@ def _point_cloud_bytes(
     colors = None if colors is None else np.asarray(colors)
     _check_rows("normals", normals, n, path)
     _check_rows("colors", colors, n, path)
-    dtype = np.dtype(
-        [
-            ("x", "<f4"),
-            ("y", "<f4"),
-            ("z", "<f4"),
-            ("nx", "<f4"),
-            ("ny", "<f4"),
-            ("nz", "<f4"),
-            ("red", "u1"),
-            ("green", "u1"),
-            ("blue", "u1"),
-        ]
-    )
-    rec = np.zeros(n, dtype=dtype)
+    rec = np.zeros(n, dtype=_CLOUD_DTYPE)
     for i, k in enumerate("xyz"):
         rec[k] = xyz[:, i]
     if normals is not None:
@@ -120,15 +126,14 @@ def _point_cloud_bytes(
     if colors is not None:
         for i, k in enumerate(("red", "green", "blue")):
             rec[k] = colors[:, i]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property float nx\nproperty float ny\nproperty float nz\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        "end_header\n"
-    )
-    return header.encode("ascii") + rec.tobytes()
+    return rec.tobytes()
+
+
+def _point_cloud_bytes(
+    path: Path, xyz: np.ndarray, normals: np.ndarray | None, colors: np.ndarray | None
+) -> bytes:
+    body = _point_records(path, xyz, normals, colors)
+    return _cloud_header(len(body) // _CLOUD_DTYPE.itemsize) + body
 
 
 def write_point_cloud(
@@ -361,6 +366,12 @@ def write_visibility(path: str | os.PathLike, offsets: np.ndarray, image_indices
 
 
 def _visibility_bytes(path: Path, offsets: np.ndarray, image_indices: np.ndarray) -> bytes:
+    body = _visibility_body(path, offsets, image_indices)
+    return np.array([len(np.asarray(offsets)) - 1], dtype="<u8").tobytes() + body
+
+
+def _visibility_body(path: Path, offsets: np.ndarray, image_indices: np.ndarray) -> bytes:
+    """The ``.vis`` body of the points (no leading point count)."""
     offsets = np.asarray(offsets, dtype=np.int64)
     image_indices = np.asarray(image_indices, dtype=np.int64)
     if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != image_indices.size:
@@ -375,7 +386,7 @@ def _visibility_bytes(path: Path, offsets: np.ndarray, image_indices: np.ndarray
     mask = np.ones(body.size, dtype=bool)
     mask[count_pos] = False
     body[mask] = image_indices
-    return np.array([n], dtype="<u8").tobytes() + body.tobytes()
+    return body.tobytes()
 
 
 def vis_path_of(path: str | os.PathLike) -> Path:
@@ -429,6 +440,112 @@ def write_cloud_pair(
         tmp_ply.unlink(missing_ok=True)
         raise
     return commit_cloud_pair(tmp_ply, tmp_vis, path), vis
+
+
+class CloudPairStream:
+    """A fused cloud and its ``.vis`` written point chunk by point chunk, in memory one chunk at a time.
+
+    :meth:`append` adds the chunk's PLY records to a temporary body file beside ``path`` and its
+    visibility to a temporary ``.vis`` beside ``path.vis`` (8 bytes left for the point count);
+    :meth:`commit` writes the PLY header (it holds the count, so it comes last) and the body into
+    a third temporary file, fills in the ``.vis`` count and renames both into place
+    (:func:`commit_cloud_pair`: together or not at all). The bytes equal :func:`write_cloud_pair` of
+    all chunks at once. :meth:`discard` (also on leaving a ``with`` block without a commit) removes
+    the temporaries; a killed run leaves them to :func:`colmap_pvs.io.cleanup.remove_orphan_temps`.
+    Nothing is created before the first :meth:`append`.
+    """
+
+    _COPY_CHUNK = 16 << 20
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.num_points = 0
+        self._body: tuple[Path, object] | None = None
+        self._vis: tuple[Path, object] | None = None
+
+    def __len__(self) -> int:
+        return self.num_points
+
+    def __enter__(self) -> CloudPairStream:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.discard()
+
+    def _open(self) -> None:
+        body = write_temp_file(self.path, b"")
+        try:
+            vis = write_temp_file(vis_path_of(self.path), b"\0" * 8)
+        except BaseException:
+            body.unlink(missing_ok=True)
+            raise
+        self._body = (body, open(body, "r+b"))
+        self._body[1].seek(0, os.SEEK_END)  # type: ignore[attr-defined]
+        self._vis = (vis, open(vis, "r+b"))
+        self._vis[1].seek(0, os.SEEK_END)  # type: ignore[attr-defined]
+
+    def append(
+        self,
+        xyz: np.ndarray,
+        normals: np.ndarray | None,
+        colors: np.ndarray | None,
+        offsets: np.ndarray,
+        image_indices: np.ndarray,
+    ) -> None:
+        """Add ``[k, 3]`` points and their visibility (CSR ``offsets [k + 1]``, ``image_indices``)."""
+        records = _point_records(self.path, xyz, normals, colors)
+        visibility = _visibility_body(vis_path_of(self.path), offsets, image_indices)
+        k = len(records) // _CLOUD_DTYPE.itemsize
+        if len(np.asarray(offsets)) - 1 != k:
+            raise ShapeError(f"cannot write {str(self.path)!r}: {k} points but visibility for "
+                             f"{len(np.asarray(offsets)) - 1}")
+        if self._body is None:
+            self._open()
+        try:
+            self._body[1].write(records)  # type: ignore[index, attr-defined]
+            self._vis[1].write(visibility)  # type: ignore[index, attr-defined]
+            self._body[1].flush()  # type: ignore[index, attr-defined]
+            self._vis[1].flush()  # type: ignore[index, attr-defined]
+        except OSError as exc:
+            self.discard()
+            raise OutputError(f"cannot write {str(self.path)!r}: {exc.strerror or exc}") from None
+        self.num_points += k
+
+    def commit(self) -> tuple[Path, Path]:
+        """The PLY and its ``.vis`` in place, together or not at all."""
+        if self._body is None or self._vis is None:
+            raise ShapeError(f"cannot write {str(self.path)!r}: no points were added")
+        body_path, body = self._body
+        vis_path, vis = self._vis
+        ply: Path | None = None
+        try:
+            vis.seek(0)  # type: ignore[attr-defined]
+            vis.write(np.array([self.num_points], dtype="<u8").tobytes())  # type: ignore[attr-defined]
+            vis.close()  # type: ignore[attr-defined]
+            ply = write_temp_file(self.path, _cloud_header(self.num_points))
+            body.seek(0)  # type: ignore[attr-defined]
+            with open(ply, "ab") as out:
+                while chunk := body.read(self._COPY_CHUNK):  # type: ignore[attr-defined]
+                    out.write(chunk)
+        except BaseException as exc:
+            if ply is not None:
+                ply.unlink(missing_ok=True)
+            self.discard()
+            if isinstance(exc, OSError):
+                raise OutputError(f"cannot write {str(self.path)!r}: {exc.strerror or exc}") from None
+            raise
+        body.close()  # type: ignore[attr-defined]
+        body_path.unlink(missing_ok=True)
+        self._body = self._vis = None
+        return commit_cloud_pair(ply, vis_path, self.path), vis_path_of(self.path)
+
+    def discard(self) -> None:
+        """Remove the temporaries (nothing to do after :meth:`commit`)."""
+        for item in (self._body, self._vis):
+            if item is not None:
+                item[1].close()  # type: ignore[attr-defined]
+                item[0].unlink(missing_ok=True)
+        self._body = self._vis = None
 
 
 def cloud_pair_is_complete(path: str | os.PathLike) -> bool:

@@ -13,8 +13,12 @@ from .config import ViewSelectionConfig
 
 logger = logging.getLogger(__name__)
 
-# Upper bound on the number of observation pairs materialised at once (memory ~ 100 B per pair).
+# The pair scores are summed per chunk of at most this many observation pairs (one bincount per chunk:
+# the chunking fixes the order of the float sums, hence the scores to the last bit).
 _MAX_PAIRS_PER_CHUNK = 1 << 22
+# Within a chunk, the pairs' angles are computed this many at a time (~150 B per pair while computed,
+# 16 B per pair kept until the chunk's bincount): the peak memory, not the sums.
+_MAX_PAIRS_PER_STEP = 1 << 18
 
 
 def angle_weight(
@@ -234,18 +238,27 @@ def _pair_statistics(
         # Largest p1 with pairs(p0..p1-1) <= budget, but always at least one point.
         p1 = int(np.searchsorted(cum_pairs, done + _MAX_PAIRS_PER_CHUNK, side="right"))
         p1 = max(p1, p0 + 1)
-        a, b = _pair_indices(offsets, p0, p1)
+        lins, gs = [], []
+        q0 = p0
+        while q0 < p1:  # the chunk's pairs in order, a step of points at a time
+            q_done = cum_pairs[q0 - 1] if q0 else 0
+            q1 = int(np.searchsorted(cum_pairs, q_done + _MAX_PAIRS_PER_STEP, side="right"))
+            q1 = min(max(q1, q0 + 1), p1)
+            a, b = _pair_indices(offsets, q0, q1)
+            q0 = q1
+            ok = valid[a] & valid[b]
+            a, b = a[ok], b[ok]
+            ra, rb = rays[a], rays[b]
+            cos = np.einsum("ij,ij->i", ra, rb)
+            sin = np.linalg.norm(np.cross(ra, rb), axis=1)
+            theta = np.degrees(np.arctan2(sin, cos))
+            gs.append(angle_weight(theta, config.theta0_deg, config.sigma1, config.sigma2))
+            lins.append(obs_image[a] * n + obs_image[b])
         p0 = p1
-        if a.shape[0] == 0:
+        lin, g = np.concatenate(lins), np.concatenate(gs)
+        del lins, gs
+        if lin.shape[0] == 0:
             continue
-        ok = valid[a] & valid[b]
-        a, b = a[ok], b[ok]
-        ra, rb = rays[a], rays[b]
-        cos = np.einsum("ij,ij->i", ra, rb)
-        sin = np.linalg.norm(np.cross(ra, rb), axis=1)
-        theta = np.degrees(np.arctan2(sin, cos))
-        g = angle_weight(theta, config.theta0_deg, config.sigma1, config.sigma2)
-        lin = obs_image[a] * n + obs_image[b]
         flat_scores += np.bincount(lin, weights=g, minlength=n * n)
         flat_shared += np.bincount(lin, minlength=n * n)
 
