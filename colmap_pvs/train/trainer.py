@@ -29,7 +29,8 @@ their states are checkpointed (with workers, their seeds come from a generator s
 Validation saves and restores the RNG states, so it never changes the training run. On
 start, ``last.pt`` (if ``resume``) restores the weights, optimizer, scheduler, the
 torch/numpy/python RNG states and the log accumulators, so a resumed run is identical to
-an uninterrupted one (same thread count assumed: CPU reductions may depend on it). Only
+an uninterrupted one (same thread count assumed: CPU reductions may depend on it; on CUDA
+(``device``), whose convolution kernels are not deterministic, close to it, not identical). Only
 the fields in :data:`~colmap_pvs.train.config.RESUMABLE_CHANGES` may differ from the
 checkpoint's config.
 """
