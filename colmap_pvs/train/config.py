@@ -41,6 +41,7 @@ RESUMABLE_CHANGES = frozenset(
         "val_every",
         "progress",
         "resume",
+        "device",
     }
 )
 
@@ -132,6 +133,13 @@ class TrainConfig:
         metadata={
             "help": "sample order: shuffled blocks of this many consecutive indices (synthetic: "
             "data.samples_per_scene reuses each rendered scene); 1 = fully random"
+        },
+    )
+    device: Literal["cpu", "cuda", "auto"] = field(
+        default="cpu",
+        metadata={
+            "help": "torch device of the model and batches: cpu, cuda, or auto (cuda when "
+            "torch.cuda.is_available(), else cpu)"
         },
     )
     num_workers: int = field(default=0, metadata={"help": "DataLoader worker processes (0 = main process)"})

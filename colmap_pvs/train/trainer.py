@@ -29,7 +29,8 @@ their states are checkpointed (with workers, their seeds come from a generator s
 Validation saves and restores the RNG states, so it never changes the training run. On
 start, ``last.pt`` (if ``resume``) restores the weights, optimizer, scheduler, the
 torch/numpy/python RNG states and the log accumulators, so a resumed run is identical to
-an uninterrupted one (same thread count assumed: CPU reductions may depend on it). Only
+an uninterrupted one (same thread count assumed: CPU reductions may depend on it; on CUDA
+(``device``), whose convolution kernels are not deterministic, close to it, not identical). Only
 the fields in :data:`~colmap_pvs.train.config.RESUMABLE_CHANGES` may differ from the
 checkpoint's config.
 """
@@ -110,6 +111,15 @@ def _to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch
     return {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in batch.items()}
 
 
+def resolve_device(name: str) -> torch.device:
+    """``TrainConfig.device`` as a torch device (``auto``: cuda when available, else cpu)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("TrainConfig: device 'cuda' was requested but torch.cuda.is_available() is False")
+    return torch.device(name)
+
+
 class Trainer:
     """Trains a :class:`~colmap_pvs.model.PVSNet` as configured by a :class:`TrainConfig`.
 
@@ -132,7 +142,7 @@ class Trainer:
     ) -> None:
         self.config = config
         self.output_dir = Path(config.output_dir)
-        self.device = torch.device("cpu")
+        self.device = resolve_device(config.device)
         random.seed(config.seed)
         np.random.seed(config.seed % 2**32)
         torch.manual_seed(config.seed)
@@ -379,7 +389,7 @@ class Trainer:
             loss = self._loss(out, batch)
             b = batch["images"].shape[0]
             loss_sum += float(loss.total) * b
-            parts_sum += loss.per_output.double().numpy() * b
+            parts_sum += loss.per_output.detach().double().cpu().numpy() * b
             count += b
             metrics = output_metrics(
                 out.depths,
@@ -563,13 +573,14 @@ class Trainer:
         )
         n_params = sum(p.numel() for p in self.model.parameters())
         logger.info(
-            "training %s parameters on %d samples: step %d -> %d, batch %d, %d threads",
+            "training %s parameters on %d samples: step %d -> %d, batch %d, %d threads, device %s",
             f"{n_params:,}",
             len(self.train_dataset),
             self.step,
             end,
             cfg.batch_size,
             torch.get_num_threads(),
+            self.device,
         )
         if torch.get_num_threads() > 1 and "OMP_WAIT_POLICY" not in os.environ:
             logger.info(
