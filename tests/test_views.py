@@ -560,3 +560,46 @@ def test_wide_sources_are_picked_by_the_score_at_the_wide_angle():
 def test_coverage_decay_validation():
     with pytest.raises(ConfigError, match="coverage_decay"):
         ViewSelectionConfig(coverage_decay=1.5)
+
+
+def _near_object_model() -> SparseModel:
+    """Image 1 at (5, 0, 0) sees 12 points around the origin (depth ~5); its source, image 2 at
+    (0, 5, 0), also sees 12 points at (2.5, 0, 0) (depth 2.5 in image 1, inside its image, which
+    image 1 did not triangulate: a near object) and 12 points at (3, 3, 0) (depth 2 in front of
+    image 1, outside its image)."""
+    rng = np.random.default_rng(0)
+    far = rng.uniform(-0.5, 0.5, (12, 3))
+    near = np.array([2.5, 0.0, 0.0]) + rng.uniform(-0.05, 0.05, (12, 3))
+    aside = np.array([3.0, 3.0, 0.0]) + rng.uniform(-0.05, 0.05, (12, 3))
+    centers = np.array([[5.0, 0, 0], [0, 5.0, 0]])
+    return make_model(centers, np.concatenate([far, near, aside]), [[1, 2]] * 12 + [[2]] * 24)
+
+
+def test_depth_range_rule_sources_reaches_a_near_object_its_sources_saw():
+    model = _near_object_model()
+    colmap = views.select_views(model, ViewSelectionConfig(num_views=2)).references["img_001.jpg"]
+    assert colmap.depth_range[0] > 3.0
+    for rule in ("sources", "frustum"):
+        cfg = ViewSelectionConfig(num_views=2, depth_range_rule=rule)
+        ref = views.select_views(model, cfg).references["img_001.jpg"]
+        assert ref.depth_range[0] == pytest.approx(0.75 * 2.45, rel=0.03)  # the near points, less 25 %
+        assert ref.depth_range[1] == colmap.depth_range[1]
+    # the points outside image 1 (depth 2) never count: without the near object the range is COLMAP's
+    xyz = np.concatenate([model.points.xyz[:12], model.points.xyz[24:]])
+    model_aside = make_model(np.array([[5.0, 0, 0], [0, 5.0, 0]]), xyz, [[1, 2]] * 12 + [[2]] * 12)
+    ref = views.select_views(model_aside, ViewSelectionConfig(num_views=2, depth_range_rule="sources"))
+    assert ref.references["img_001.jpg"].depth_range == pytest.approx(colmap.depth_range)
+    single = compute_depth_range(model, model.images[1], ViewSelectionConfig(depth_range_rule="frustum"))
+    assert single[0] == pytest.approx(0.75 * 2.45, rel=0.03)
+
+
+def test_depth_near_factor_scales_the_near_end_only_and_keeps_the_guard():
+    model = _near_object_model()
+    base = compute_depth_range(model, model.images[1], ViewSelectionConfig())
+    half = compute_depth_range(model, model.images[1], ViewSelectionConfig(depth_near_factor=0.5))
+    assert half == pytest.approx((0.5 * base[0], base[1]))
+    guard = ViewSelectionConfig(depth_near_factor=0.01, min_depth_ratio=0.1)
+    assert compute_depth_range(model, model.images[1], guard)[0] == pytest.approx(0.1 * base[1])
+    for bad in ({"depth_near_factor": 0.0}, {"depth_near_factor": 1.5}, {"depth_range_rule": "widest"}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            ViewSelectionConfig(**bad)
