@@ -12,8 +12,8 @@ class's pixel count. The classes (on the GT grid, GT-valid pixels only; :func:`c
 
 - ``all``: every GT pixel;
 - ``outside range`` / ``inside range``: GT depth outside / inside the depth range COLMAP's rule gives
-  the reference (``ViewSelectionConfig(depth_range_rule="colmap")``: the sparse points' 1st / 99th
-  percentiles with a 25 % margin), whatever range the maps were made with;
+  the reference (the default ``ViewSelectionConfig``: the sparse points' 1st / 99th percentiles with
+  a 25 % margin), whatever range the maps were made with;
 - ``slanted``: the angle between the GT normal (``colmap_pvs.normals.fit_normals`` of the GT depth,
   7x7 plane fit) and the viewing ray above :data:`SLANT_DEG`;
 - ``low texture``: the grey image's (0-1) standard deviation in a 7x7 window below
@@ -173,7 +173,7 @@ def main() -> int:
     work = a.work_dir.resolve()
     model = read_sparse_model(work / "model" / "sparse")
     names = sorted(model.image_ids_by_name)
-    sel = select_views(model, ViewSelectionConfig(num_views=a.num_views, depth_range_rule="colmap"))
+    sel = select_views(model, ViewSelectionConfig(num_views=a.num_views))
     refs = frame_refs(work, a.tags[0], names, a)
     for tag in a.tags[1:]:
         refs = [r for r in refs if r in set(frame_refs(work, tag, names, a))]

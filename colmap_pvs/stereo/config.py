@@ -15,7 +15,6 @@ from typing import ClassVar, Literal
 from ..completion import SEGMENT_MIN_INLIERS, SEGMENT_MIN_PIXELS
 from ..config import check_int_fields, check_range, check_threads, config_flags, config_to_flags
 from ..errors import ConfigError
-from ..views.config import DEPTH_RANGE_RULE_HELP
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_default.pt"
 #: The resolved config of the last run, in ``stereo/``.
@@ -64,14 +63,6 @@ class PhotometricConfig:
             "help": "MIN MAX: one depth range for every reference (default: each from its sparse points)",
         },
     )
-    depth_range_rule: Literal["colmap", "sources", "frustum"] = field(
-        default="colmap",
-        metadata={"provenance": False, "help": "each reference's depth range: " + DEPTH_RANGE_RULE_HELP},
-    )
-    depth_near_factor: float = field(
-        default=1.0,
-        metadata={"provenance": False, "help": "the depth range's near end times this, in (0, 1]"},
-    )
     network_scale: float = field(
         default=0.8,
         metadata={
@@ -119,9 +110,6 @@ class PhotometricConfig:
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
         check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
         check_range("network_min_size", self.network_min_size, low=16)
-        check_range("depth_near_factor", self.depth_near_factor, low=0.0, high=1.0)
-        if self.depth_near_factor <= 0:
-            raise ConfigError(f"depth_near_factor must be in (0, 1], got {self.depth_near_factor}")
         try:
             object.__setattr__(self, "depth_range", tuple(float(v) for v in self.depth_range))
         except (TypeError, ValueError):

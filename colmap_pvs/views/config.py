@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
@@ -13,13 +12,6 @@ WIDE_SOURCES_HELP = (
     "of the num_views-1 sources, this many (at most half, rounded down) are picked by the MVSNet score "
     "at wide_theta0_deg instead of theta0_deg: wider baselines make the geometric maps more accurate "
     "but sparser (e.g. 2 at N = 5; 0: off)"
-)
-
-DEPTH_RANGE_RULE_HELP = (
-    "colmap: the range of the reference's own sparse points (depth_percentiles, depth_margin); sources: "
-    "its near end also reaches the 1st percentile (less the margin) of the points its num_views-1 "
-    "sources observe that project into its image; frustum: the same over every sparse point that "
-    "projects into its image"
 )
 
 
@@ -81,19 +73,6 @@ class ViewSelectionConfig:
             "help": "relative margin m in [0, 1) applied to the percentile range [lo, hi]: "
             "depth range = [lo*(1-m), hi*(1+m)] (0.25 and the 1/99 percentiles are what COLMAP's "
             "own dense workspace uses)"
-        },
-    )
-    depth_range_rule: Literal["colmap", "sources", "frustum"] = field(
-        default="colmap",
-        metadata={
-            "help": DEPTH_RANGE_RULE_HELP
-        },
-    )
-    depth_near_factor: float = field(
-        default=1.0,
-        metadata={
-            "help": "in (0, 1]: the range's near end times this (0.5 doubles the nearest inverse depth "
-            "swept; 1: as the rule gives it)"
         },
     )
     min_depth_ratio: float = field(
@@ -159,12 +138,6 @@ class ViewSelectionConfig:
             )
         if not 0.0 <= self.depth_margin < 1.0:
             raise ConfigError(f"depth_margin must be in [0, 1), got {self.depth_margin}")
-        if self.depth_range_rule not in ("colmap", "sources", "frustum"):
-            raise ConfigError(
-                f"depth_range_rule must be colmap, sources or frustum, got {self.depth_range_rule!r}"
-            )
-        if not (np.isfinite(self.depth_near_factor) and 0.0 < self.depth_near_factor <= 1.0):
-            raise ConfigError(f"depth_near_factor must be in (0, 1], got {self.depth_near_factor}")
         if not 0.0 < self.min_depth_ratio < 1.0:
             raise ConfigError(f"min_depth_ratio must be in (0, 1), got {self.min_depth_ratio}")
         if not (np.isfinite(self.depth_outlier_sigmas) and self.depth_outlier_sigmas >= 0):

@@ -37,40 +37,6 @@ def _observed_depths(model: SparseModel, image: Image, order: np.ndarray | None 
     return z[np.isfinite(z) & (z > 0)]
 
 
-def _projected_depths(model: SparseModel, image: Image, rows: np.ndarray) -> np.ndarray:
-    """Camera-frame z ``[M']`` of the points ``rows`` of ``model.points`` that project into ``image``
-    (in front of it and inside its pinhole image; lens distortion is ignored)."""
-    xyz = np.asarray(model.points.xyz, dtype=np.float64)[np.unique(rows)]
-    cam = np.asarray(image.cam_from_world, dtype=np.float64)
-    pc = xyz @ cam[:3, :3].T + cam[:3, 3]
-    z = pc[:, 2]
-    front = np.isfinite(z) & (z > 0)
-    pc, z = pc[front], z[front]
-    camera = model.cameras[image.camera_id]
-    K = np.asarray(camera.K, dtype=np.float64)
-    u = K[0, 0] * pc[:, 0] / z + K[0, 2]
-    v = K[1, 1] * pc[:, 1] / z + K[1, 2]
-    inside = (u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5)
-    return z[inside]
-
-
-def _near_depths(
-    model: SparseModel, image: Image, config: ViewSelectionConfig, sources: tuple[Image, ...] = (),
-    order: np.ndarray | None = None,
-) -> np.ndarray | None:
-    """The depths that may move ``image``'s near end under ``config.depth_range_rule`` (``None``:
-    the colmap rule): the points ``sources`` observe (``sources``) or every point (``frustum``) that
-    project into ``image``."""
-    if config.depth_range_rule == "colmap":
-        return None
-    if config.depth_range_rule == "frustum":
-        rows = np.arange(np.asarray(model.points.ids).shape[0])
-    else:
-        ids = [np.asarray(s.point3D_ids, dtype=np.int64).reshape(-1) for s in sources]
-        rows = _point_rows(model.points, np.concatenate(ids) if ids else np.zeros(0, np.int64), order)
-    return _projected_depths(model, image, rows)
-
-
 def _outlier_mask(depths: np.ndarray, config: ViewSelectionConfig) -> np.ndarray:
     """``[M]`` bool, True for far outliers among positive depths ``[M]`` (see :func:`compute_depth_range`)."""
     none = np.zeros(depths.shape, dtype=bool)
@@ -87,12 +53,9 @@ def _outlier_mask(depths: np.ndarray, config: ViewSelectionConfig) -> np.ndarray
 
 
 def _robust_depth_range(
-    depths: np.ndarray, config: ViewSelectionConfig, name: str, near_depths: np.ndarray | None = None
+    depths: np.ndarray, config: ViewSelectionConfig, name: str
 ) -> tuple[tuple[float, float], str | None]:
-    """Depth range of one image and, when outliers were ignored, a note naming how many.
-
-    ``near_depths`` (:func:`_near_depths`): more depths whose ``depth_percentiles[0]`` percentile,
-    less the margin, may lower the near end (when there are at least ``min_points`` of them)."""
+    """Depth range of one image and, when outliers were ignored, a note naming how many."""
     outliers = _outlier_mask(depths, config)
     note = None
     if outliers.any():
@@ -104,13 +67,7 @@ def _robust_depth_range(
             "ignored for the depth range"
         )
         depths = kept
-    dmin, dmax = _depth_range_from_depths(depths, config)
-    if near_depths is not None and near_depths.shape[0] >= config.min_points:
-        lo = float(np.percentile(near_depths, config.depth_percentiles[0]))
-        dmin = min(dmin, max(lo * (1.0 - config.depth_margin), config.min_depth_ratio * dmax))
-    if config.depth_near_factor < 1.0:
-        dmin = max(dmin * config.depth_near_factor, min(dmin, config.min_depth_ratio * dmax))
-    return (dmin, dmax), note
+    return _depth_range_from_depths(depths, config), note
 
 
 def _depth_range_from_depths(depths: np.ndarray, config: ViewSelectionConfig) -> tuple[float, float]:
@@ -142,11 +99,6 @@ def compute_depth_range(
         dmax = hi * (1 + m)
         dmin = max(lo * (1 - m), min_depth_ratio * dmax)      # always > 0
 
-    ``config.depth_range_rule`` ``frustum`` then lowers ``dmin`` to the same percentile, less the margin,
-    of every sparse point that projects into the image, when that is nearer (``sources`` needs the
-    view selection's sources: :func:`~colmap_pvs.views.select_views`; here it has none and is the
-    colmap rule), and ``config.depth_near_factor`` multiplies ``dmin`` (never below the guard).
-
     Returns ``None``, with a warning, when fewer than ``config.min_points`` observed
     points lie in front of the camera.
     """
@@ -160,8 +112,7 @@ def compute_depth_range(
             config.min_points,
         )
         return None
-    depth_range, note = _robust_depth_range(depths, config, repr(image.name),
-                                            _near_depths(model, image, config, order=_order))
+    depth_range, note = _robust_depth_range(depths, config, repr(image.name))
     if note is not None:  # harmless and expected (SfM noise): a detail, not a warning
         logger.debug("image %s", note)
     return depth_range

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import ShapeError, WorkspaceError
 from ..types import SparseModel
 from .config import ViewSelectionConfig
-from .depth_range import _near_depths, _observed_depths, _robust_depth_range
+from .depth_range import _observed_depths, _robust_depth_range
 from .scores import _group_by_image, _pair_statistics, coverage_order, rank_sources
 
 logger = logging.getLogger(__name__)
@@ -203,9 +203,7 @@ def select_views(model: SparseModel, config: ViewSelectionConfig | None = None) 
             ranked = np.concatenate([near, far, rest[~np.isin(rest, far)]])
         ranked_names = tuple(names[j] for j in ranked)
         ranked_scores = row[ranked]
-        near = _near_depths(model, image, config, tuple(model.images[int(stats.image_ids[j])]
-                                                        for j in ranked[:n_sources]), order)
-        depth_range, note = _robust_depth_range(depths, config, repr(image.name), near)
+        depth_range, note = _robust_depth_range(depths, config, repr(image.name))
         if note is not None:
             outlier_notes.append(note)
             logger.debug("image %s", note)
