@@ -80,3 +80,15 @@ def test_class_masks_are_within_the_valid_gt_and_counts_score_a_missing_depth_as
     pred[:, 20:30] *= 1.1  # 12 % off
     n, has, within = bs.counts(pred, gt, masks["all"])
     assert (n, has, within) == (H * (W - 10), H * (W - 20), H * (W - 30))
+
+
+def test_frames_keeps_only_the_named_ones_of_the_stride_and_offset():
+    import argparse
+
+    import real_depth as rd
+
+    names = [f"{i:05d}.png" for i in range(10)]
+    args = argparse.Namespace(stride=3, offset=1, frames=[])
+    assert rd.frame_names(names, args) == ["00001.png", "00004.png", "00007.png"]
+    args.frames = ["00004.png", "00005.png"]  # 00005 is not one of the stride's frames
+    assert rd.frame_names(names, args) == ["00004.png"]
