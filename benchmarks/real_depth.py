@@ -104,8 +104,16 @@ def quick_sources(names: list[str], selection, args: argparse.Namespace) -> dict
     """The evaluated references of ``names`` (every ``args.stride``-th from ``args.offset``, if the
     :class:`~colmap_pvs.views.ViewSelection` ``selection`` made them references) and the first
     ``args.num_views - 1`` of each one's ranked sources (the view selection's own choice)."""
-    refs = [n for n in sorted(names)[args.offset :: args.stride] if n in selection.references]
+    refs = [n for n in frame_names(names, args) if n in selection.references]
     return top_sources(selection, refs, args.num_views)
+
+
+def frame_names(names: list[str], args: argparse.Namespace) -> list[str]:
+    """The frames of ``names`` a quick benchmark evaluates: every ``args.stride``-th from ``args.offset``,
+    and of those only the ``args.frames`` when given (``--frames``)."""
+    picked = sorted(names)[args.offset :: args.stride]
+    frames = getattr(args, "frames", None)
+    return [n for n in picked if n in set(frames)] if frames else picked
 
 
 def top_sources(selection, refs, num_views: int) -> dict[str, list[str]]:
@@ -139,14 +147,16 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
 
 
 def add_frame_args(p: argparse.ArgumentParser, stride: int) -> None:
-    """The data, work folder, frames (``--stride``, ``--offset``), ``--num_views`` and ``--threads``
-    arguments that :func:`quick_model` and :func:`quick_sources` read."""
+    """The data, work folder, frames (``--stride``, ``--offset``, ``--frames``), ``--num_views`` and
+    ``--threads`` arguments that :func:`quick_model` and :func:`quick_sources` read."""
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--work_dir", type=Path, default=DEFAULT_WORK)
     p.add_argument("--stride", type=int, default=stride)
     p.add_argument("--offset", type=int, default=0)
     p.add_argument("--num_views", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--frames", nargs="*", default=[], metavar="NAME",
+                   help="only these of the --stride/--offset frames (a subset while developing)")
 
 
 def add_quick_args(p: argparse.ArgumentParser, tag: str, tag_help: str, stride: int) -> None:

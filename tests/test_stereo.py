@@ -1299,6 +1299,18 @@ def test_a_fixed_depth_range_is_every_references_range(synthetic_ws, tiny_checkp
     assert {entry.depth_range for entry in ctx.selection.references.values()} == {(0.5, 9.0)}
 
 
+def test_depth_near_factor_moves_every_references_near_end(synthetic_ws, tiny_checkpoint):
+    """``--depth_near_factor`` reaches the view selection: the near end moves, the far end stays."""
+    flags = dict(workspace_path=synthetic_ws, checkpoint=tiny_checkpoint)
+    base = stereo_context.prepare_stereo(stereo_config(**flags)).selection.references
+    half = stereo_context.prepare_stereo(stereo_config(**flags, depth_near_factor=0.5)).selection.references
+    assert base and set(half) == set(base)
+    for name, entry in base.items():
+        assert half[name].depth_range == pytest.approx((0.5 * entry.depth_range[0], entry.depth_range[1]))
+    with pytest.raises(ConfigError, match="depth_near_factor"):
+        stereo_config(**flags, depth_near_factor=0.0)
+
+
 def test_a_failed_overwrite_keeps_the_old_maps(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
     """A disk that fills up during `stereo --overwrite` had already cost the old photometric maps: each
     pass's new files are now written beside the old ones first, and the old go only once all are written."""

@@ -579,3 +579,18 @@ def test_wide_sources_are_picked_by_the_score_at_the_wide_angle():
 def test_coverage_decay_validation():
     with pytest.raises(ConfigError, match="coverage_decay"):
         ViewSelectionConfig(coverage_decay=1.5)
+
+
+def test_depth_near_factor_scales_the_near_end_only_and_keeps_the_guard():
+    rng = np.random.default_rng(0)
+    model = make_model(np.array([[5.0, 0, 0], [0, 5.0, 0]]), rng.uniform(-0.5, 0.5, (12, 3)), [[1, 2]] * 12)
+    base = compute_depth_range(model, model.images[1], ViewSelectionConfig())
+    half = compute_depth_range(model, model.images[1], ViewSelectionConfig(depth_near_factor=0.5))
+    assert half == pytest.approx((0.5 * base[0], base[1]))
+    selected = views.select_views(model, ViewSelectionConfig(num_views=2, depth_near_factor=0.5))
+    assert selected.references["img_001.jpg"].depth_range == pytest.approx(half)
+    guard = ViewSelectionConfig(depth_near_factor=0.01, min_depth_ratio=0.1)
+    assert compute_depth_range(model, model.images[1], guard)[0] == pytest.approx(0.1 * base[1])
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="depth_near_factor"):
+            ViewSelectionConfig(depth_near_factor=bad)

@@ -63,6 +63,11 @@ class PhotometricConfig:
             "help": "MIN MAX: one depth range for every reference (default: each from its sparse points)",
         },
     )
+    depth_near_factor: float = field(
+        default=1.0,
+        metadata={"provenance": False,  # the maps' provenance holds the range it gives
+                  "help": "in (0, 1]: each reference's depth range's near end times this (1: COLMAP's)"},
+    )
     network_scale: float = field(
         default=0.8,
         metadata={
@@ -110,6 +115,8 @@ class PhotometricConfig:
         check_range("prior_agreement_scale", self.prior_agreement_scale, low=0.0)
         check_range("network_scale", self.network_scale, low=0.25, high=NETWORK_SCALE_MAX)
         check_range("network_min_size", self.network_min_size, low=16)
+        if not 0.0 < self.depth_near_factor <= 1.0:
+            raise ConfigError(f"depth_near_factor must be in (0, 1], got {self.depth_near_factor}")
         try:
             object.__setattr__(self, "depth_range", tuple(float(v) for v in self.depth_range))
         except (TypeError, ValueError):

@@ -409,7 +409,8 @@ def prepare_stereo(config: StereoConfig, *, background_io: bool = False,
     calibration = checkpoint_calibration(base, ckpt_sha256 if weights is None else file_sha256(base))
     selection: ViewSelection = select_views(
         model_sparse,
-        ViewSelectionConfig(num_views=config.photometric.num_views),
+        ViewSelectionConfig(num_views=config.photometric.num_views,
+                            depth_near_factor=config.photometric.depth_near_factor),
     )
     if config.photometric.depth_range:  # one range for all (COLMAP's depth_min/depth_max)
         fixed = tuple(config.photometric.depth_range)

@@ -75,6 +75,13 @@ class ViewSelectionConfig:
             "own dense workspace uses)"
         },
     )
+    depth_near_factor: float = field(
+        default=1.0,
+        metadata={
+            "help": "in (0, 1]: the range's near end times this (0.5 doubles the nearest inverse depth "
+            "swept; 1: COLMAP's range)"
+        },
+    )
     min_depth_ratio: float = field(
         default=1e-3,
         metadata={"help": "guard in (0, 1): the minimum depth is at least min_depth_ratio * maximum depth"},
@@ -138,6 +145,8 @@ class ViewSelectionConfig:
             )
         if not 0.0 <= self.depth_margin < 1.0:
             raise ConfigError(f"depth_margin must be in [0, 1), got {self.depth_margin}")
+        if not (np.isfinite(self.depth_near_factor) and 0.0 < self.depth_near_factor <= 1.0):
+            raise ConfigError(f"depth_near_factor must be in (0, 1], got {self.depth_near_factor}")
         if not 0.0 < self.min_depth_ratio < 1.0:
             raise ConfigError(f"min_depth_ratio must be in (0, 1), got {self.min_depth_ratio}")
         if not (np.isfinite(self.depth_outlier_sigmas) and self.depth_outlier_sigmas >= 0):

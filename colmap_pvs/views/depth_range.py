@@ -67,7 +67,10 @@ def _robust_depth_range(
             "ignored for the depth range"
         )
         depths = kept
-    return _depth_range_from_depths(depths, config), note
+    dmin, dmax = _depth_range_from_depths(depths, config)
+    if config.depth_near_factor < 1.0:
+        dmin = max(dmin * config.depth_near_factor, min(dmin, config.min_depth_ratio * dmax))
+    return (dmin, dmax), note
 
 
 def _depth_range_from_depths(depths: np.ndarray, config: ViewSelectionConfig) -> tuple[float, float]:
@@ -98,6 +101,8 @@ def compute_depth_range(
 
         dmax = hi * (1 + m)
         dmin = max(lo * (1 - m), min_depth_ratio * dmax)      # always > 0
+
+    ``config.depth_near_factor`` then multiplies ``dmin``, never below that guard.
 
     Returns ``None``, with a warning, when fewer than ``config.min_points`` observed
     points lie in front of the camera.
