@@ -408,12 +408,13 @@ def test_colour_bar_labels_centred_on_their_ticks_and_inside_the_strip() -> None
     w, off_first, _ = _label_box("depth (m)")
     first = int(np.nonzero(title.any(axis=(0, 2)))[0][0])
     assert abs(first - off_first + w / 2 - 401 / 2) <= 1
-    narrow = colour_bar(40, cv2.COLORMAP_INFERNO, [], "confidence score")
-    _, off_first, _ = _label_box("confidence score")
+    narrow = colour_bar(40, cv2.COLORMAP_INFERNO, [], "P(depth within 5 %)")
+    _, off_first, _ = _label_box("P(depth within 5 %)")
+    assert off_first > 0  # so that a start left of column 0 shows
     assert int(np.nonzero(narrow[30:].any(axis=(0, 2)))[0][0]) == off_first
 
 
-@pytest.mark.parametrize("side", ["left", "right"])
+@pytest.mark.parametrize("side", ["left", "inner", "right"])
 def test_colour_bar_drops_labels_closer_than_5_px_to_a_drawn_one(side: str) -> None:
     """A label (and its tick) is drawn only if its box is at least 5 px from every label drawn before it;
     the labels after a dropped one are still tried."""
@@ -421,14 +422,15 @@ def test_colour_bar_drops_labels_closer_than_5_px_to_a_drawn_one(side: str) -> N
 
     width, (w_a, _, _), (w_b, _, _) = 201, _label_box("0"), _label_box("8")
     for gap in (-3, 3, 4, 5, 6):
-        if side == "left":  # "0" at the left end (box 2 .. 2 + w_a), "8" to its right
-            left_b = 2 + w_a + gap
-            ticks = [(0.0, "0")]
+        if side in ("left", "inner"):  # "0" at the left end (box 2 .. 2 + w_a) or 2 px in, "8" to its right
+            left_a = 2 if side == "left" else 4
+            left_b = left_a + w_a + gap
+            ticks = [((left_a + w_a // 2) / (width - 1), "0")]
         else:  # "0" at the right end, "8" to its left
             left_b = width - 2 - w_a - gap - w_b
             ticks = [(1.0, "0")]
         x_b = left_b + w_b // 2
-        far = 1.0 if side == "left" else 0.0
+        far = 0.0 if side == "right" else 1.0
         strip = colour_bar(width, cv2.COLORMAP_TURBO, [*ticks, (x_b / (width - 1), "8"), (far, "9")], "t")
         drawn, runs, _ = _bar_parts(strip, cv2.COLORMAP_TURBO)
         assert (x_b in drawn) == (gap >= 5), (side, gap)
