@@ -481,3 +481,16 @@ def test_degenerate_shapes_are_refused(tmp_path: Path) -> None:
     with pytest.raises(MapFormatError, match="it has 2 channels, expected 3"):
         read_normal_map(tmp_path / "two.bin")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["two.bin"]
+
+
+def test_depth_preview_without_valid_depths_keeps_the_given_range(tmp_path: Path) -> None:
+    """An all-invalid depth map (every pixel filtered out) is black, and its bar still reads the range it
+    was given (stereo passes the view's depth range), not a made-up 0..1."""
+    from colmap_pvs.io.maps import colour_bar
+
+    depth = np.zeros((8, 400))
+    depth[0, 0] = np.nan
+    preview = _read_png(save_depth_preview(tmp_path / "d.png", depth, 2.0, 6.0, units="m"))
+    assert not preview[:8].any()
+    ticks = [(0.0, "2"), (1.0, "6"), (0.5, "4"), (0.25, "3"), (0.75, "5")]
+    assert np.array_equal(preview[8:], colour_bar(400, cv2.COLORMAP_TURBO, ticks, "depth (m)"))
