@@ -122,6 +122,8 @@ def _corrupt_cases() -> dict[str, tuple[bytes, str]]:
         "header_past_64_bytes": (b"4&3&" + b"0" * 59 + b"1&" + good[6:], "no 'W&H&C&' header in its first"),
         "bad_number": (b"4&x&1&" + good[6:], "malformed header"),
         "zero_size": (b"0&3&1&", "non-positive"),
+        "negative_size": (b"-4&3&1&" + good[6:], "non-positive"),
+        "empty_width": (b"&3&1&" + good[6:], "malformed header"),
         "empty": (b"", "no 'W&H&C&' header"),
         "payload_only": (np.ones(12, dtype="<f4").tobytes(), "header"),
     }
@@ -192,6 +194,9 @@ def test_previews(tmp_path: Path) -> None:
     fixed = colorize_depth(depth, 2.0, 3.0)
     assert np.array_equal(fixed[5, 0], fixed[5, 4]) and not np.array_equal(fixed[5, 0], fixed[5, -1])
     assert (fixed[0, :5] == 0).all()
+    narrow_range = colorize_depth(np.array([[0.2, 0.4, 0.6]]), 0.2, 0.6)  # a range under 1 unit
+    assert np.array_equal(narrow_range[0], cv2.applyColorMap(np.array([[0, 128, 255]], np.uint8),
+                                                             cv2.COLORMAP_TURBO)[0])
     with pytest.raises(ShapeError):
         colorize_depth(np.ones((2, 2, 1)))
 
@@ -412,9 +417,14 @@ def test_colour_bar_labels_centred_on_their_ticks_and_inside_the_strip() -> None
     _, off_first, _ = _label_box("P(depth within 5 %)")
     assert off_first > 0  # so that a start left of column 0 shows
     assert int(np.nonzero(narrow[30:].any(axis=(0, 2)))[0][0]) == off_first
+    w, _, _ = _label_box("8")
+    for width in (w + 3, w + 4):  # a label that cannot be 2 px inside the strip on both sides is left out
+        strip = colour_bar(width, cv2.COLORMAP_TURBO, [(0.5, "8")], "")
+        ticks, runs, _ = _bar_parts(strip, cv2.COLORMAP_TURBO)
+        assert len(ticks) == len(runs) == (width >= w + 4)
 
 
-@pytest.mark.parametrize("side", ["left", "inner", "right"])
+@pytest.mark.parametrize("side", ["left", "inner", "inner_overlapping_bits", "right"])
 def test_colour_bar_drops_labels_closer_than_5_px_to_a_drawn_one(side: str) -> None:
     """A label (and its tick) is drawn only if its box is at least 5 px from every label drawn before it;
     the labels after a dropped one are still tried."""
@@ -422,8 +432,8 @@ def test_colour_bar_drops_labels_closer_than_5_px_to_a_drawn_one(side: str) -> N
 
     width, (w_a, _, _), (w_b, _, _) = 201, _label_box("0"), _label_box("8")
     for gap in (-3, 3, 4, 5, 6):
-        if side in ("left", "inner"):  # "0" at the left end (box 2 .. 2 + w_a) or 2 px in, "8" to its right
-            left_a = 2 if side == "left" else 4
+        if side != "right":  # "0" at the left end (box 2 .. 2 + w_a) or 2 px in, "8" to its right
+            left_a = {"left": 2, "inner": 4, "inner_overlapping_bits": 10}[side]
             left_b = left_a + w_a + gap
             ticks = [((left_a + w_a // 2) / (width - 1), "0")]
         else:  # "0" at the right end, "8" to its left
@@ -467,7 +477,9 @@ def test_preview_bars_mark_the_documented_values(tmp_path: Path) -> None:
 def test_confidence_preview_out_of_range_values(tmp_path: Path, tolerance: float | None) -> None:
     """Non-finite confidences are black (0); values outside [0, 1] are clipped, never wrapped around."""
     conf = np.array([[np.inf, -np.inf, np.nan, -0.5, 0.0, 1.0, 1.5, 3.0]])
-    image = _read_png(save_confidence_preview(tmp_path / "c.png", conf, tolerance))[:1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # P = 1 without a division by zero
+        image = _read_png(save_confidence_preview(tmp_path / "c.png", conf, tolerance))[:1]
     lut = _lut(cv2.COLORMAP_INFERNO, 256)
     assert np.array_equal(image[0], lut[[0, 0, 0, 0, 0, 255, 255, 255]])
 
