@@ -122,6 +122,8 @@ def _corrupt_cases() -> dict[str, tuple[bytes, str]]:
         "header_past_64_bytes": (b"4&3&" + b"0" * 59 + b"1&" + good[6:], "no 'W&H&C&' header in its first"),
         "bad_number": (b"4&x&1&" + good[6:], "malformed header"),
         "zero_size": (b"0&3&1&", "non-positive"),
+        "negative_size": (b"-4&3&1&" + good[6:], "non-positive"),
+        "empty_width": (b"&3&1&" + good[6:], "malformed header"),
         "empty": (b"", "no 'W&H&C&' header"),
         "payload_only": (np.ones(12, dtype="<f4").tobytes(), "header"),
     }
@@ -192,6 +194,9 @@ def test_previews(tmp_path: Path) -> None:
     fixed = colorize_depth(depth, 2.0, 3.0)
     assert np.array_equal(fixed[5, 0], fixed[5, 4]) and not np.array_equal(fixed[5, 0], fixed[5, -1])
     assert (fixed[0, :5] == 0).all()
+    narrow_range = colorize_depth(np.array([[0.2, 0.4, 0.6]]), 0.2, 0.6)  # a range under 1 unit
+    assert np.array_equal(narrow_range[0], cv2.applyColorMap(np.array([[0, 128, 255]], np.uint8),
+                                                             cv2.COLORMAP_TURBO)[0])
     with pytest.raises(ShapeError):
         colorize_depth(np.ones((2, 2, 1)))
 
@@ -276,7 +281,7 @@ def test_a_header_within_64_bytes_is_read(tmp_path: Path) -> None:
 
 
 def test_write_errors_count_the_offending_values(tmp_path: Path) -> None:
-    depth = np.array([[0.0, 0.5, -1.0], [2.0, -0.25, 0.0]])
+    depth = np.array([[0.0, 0.5, -1.0], [2.0, -0.25, 3.0]])  # 2 negative, 3 positive
     with pytest.raises(MapFormatError, match=r": 2 negative depths \(min -1.0\)"):
         write_depth_map(tmp_path / "d.bin", depth)
     normals = np.zeros((3, 4, 3))
@@ -315,3 +320,189 @@ def test_normal_preview_refuses_other_shapes(tmp_path: Path, shape: tuple[int, .
     with pytest.raises(ShapeError, match=r"\[H, W, 3\]"):
         save_normal_preview(tmp_path / "n.png", np.zeros(shape))
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- the colour bar, in detail
+
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _label_box(label: str) -> tuple[int, int, int]:
+    """``(width, first ink column, last ink column)`` of ``label`` in the bar's font, the ink columns
+    relative to the left end of its text box (measured on a scratch canvas)."""
+    (w, _), _ = cv2.getTextSize(label, _FONT, 0.4, 1)
+    canvas = np.zeros((40, w + 40), np.uint8)
+    cv2.putText(canvas, label, (20, 30), _FONT, 0.4, 255, 1, cv2.LINE_AA)
+    cols = np.nonzero(canvas.any(axis=0))[0]
+    return w, int(cols[0]) - 20, int(cols[-1]) - 20
+
+
+def _runs(cols: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of ink columns (a label's characters touch; labels are 5 px or more apart)."""
+    runs: list[list[int]] = []
+    for c in cols.tolist():
+        if runs and c - runs[-1][1] <= 2:
+            runs[-1][1] = c
+        else:
+            runs.append([c, c])
+    return [(a, b) for a, b in runs]
+
+
+def _bar_parts(strip: np.ndarray, colormap: int) -> tuple[list[int], list[tuple[int, int]], np.ndarray]:
+    """The tick columns, the label ink runs (left to right) and the title rows of a colour bar."""
+    gradient = [i for i, r in enumerate(strip) if np.array_equal(r, _lut(colormap, strip.shape[1]))]
+    tick_row = gradient[-1] + 1
+    ticks = np.nonzero(strip[tick_row].any(axis=1))[0].tolist()
+    labels = strip[tick_row + 3:tick_row + 13]
+    return ticks, _runs(np.nonzero(labels.any(axis=(0, 2)))[0]), strip[tick_row + 13:]
+
+
+def test_colour_bar_layout() -> None:
+    """The strip's rows: 4 black rows between the picture and the gradient, 12 rows of gradient, 3 rows
+    of tick marks, the labels (rows 19-28), 2 black rows, the title (rows 31-43, its descenders whole)."""
+    from colmap_pvs.io.maps import colour_bar
+
+    title = "P(depth within 5 %)"
+    strip = colour_bar(200, cv2.COLORMAP_TURBO, [(0.0, "2"), (1.0, "6"), (0.5, "4")], title)
+    assert strip.shape == (44, 200, 3) and BAR_HEIGHT == 44
+    ink_rows = np.nonzero(strip.any(axis=(1, 2)))[0].tolist()
+    assert ink_rows == list(range(4, 29)) + list(range(31, 44))
+    assert all(np.array_equal(strip[r], _lut(cv2.COLORMAP_TURBO, 200)) for r in range(4, 16))
+    assert not np.array_equal(strip[16], _lut(cv2.COLORMAP_TURBO, 200))
+    ticks = np.zeros((3, 200), bool)
+    ticks[:, [0, 100, 199]] = True
+    assert np.array_equal(strip[16:19].any(axis=2), ticks)  # 3-row tick marks, nothing else
+    label_rows = np.nonzero(strip[19:31].any(axis=(1, 2)))[0]
+    assert (label_rows.min(), label_rows.max()) == (0, 9)  # digits: 10 rows, baseline at row 28
+    canvas = np.zeros((60, 200), np.uint8)
+    cv2.putText(canvas, title, (10, 40), _FONT, 0.4, 255, 1, cv2.LINE_AA)
+    assert np.count_nonzero(canvas.any(axis=1)) == 13  # the title's full height: nothing clipped
+
+
+def test_colour_bar_ticks_and_text_are_white() -> None:
+    from colmap_pvs.io.maps import colour_bar
+
+    strip = colour_bar(200, cv2.COLORMAP_TURBO, [(0.0, "2"), (1.0, "6"), (0.5, "4")], "depth (m)")
+    below = strip[16:].astype(int)
+    assert (below[:, :, 0] == below[:, :, 1]).all() and (below[:, :, 1] == below[:, :, 2]).all()  # grey
+    assert (strip[16:19, [0, 100, 199]] == 255).all() and below.max() == 255
+
+
+def test_colour_bar_labels_centred_on_their_ticks_and_inside_the_strip() -> None:
+    """Each label's box is centred on its tick (+-1 px); the end labels' boxes lie exactly 2 px inside
+    the strip; the title is centred (+-1 px), or starts at column 0 where it is wider than the strip."""
+    from colmap_pvs.io.maps import colour_bar
+
+    labels = ["2.5", "10.3", "0.25", "0.99", "6"]
+    positions = [0.0, 1.0, 0.5, 0.25, 0.75]
+    strip = colour_bar(401, cv2.COLORMAP_TURBO, list(zip(positions, labels, strict=True)), "depth (m)")
+    ticks, runs, title = _bar_parts(strip, cv2.COLORMAP_TURBO)
+    assert ticks == [0, 100, 200, 300, 400]
+    assert len(runs) == 5
+    by_x = dict(zip([0, 400, 200, 100, 300], labels, strict=True))
+    for x, (first, last) in zip(ticks, runs, strict=True):
+        w, off_first, off_last = _label_box(by_x[x])
+        left = first - off_first
+        assert last - off_last == left  # the run is one whole label
+        if x == 0:
+            assert left == 2
+        elif x == 400:
+            assert left + w == 401 - 2
+        else:
+            assert abs(left + w / 2 - x) <= 1
+    w, off_first, _ = _label_box("depth (m)")
+    first = int(np.nonzero(title.any(axis=(0, 2)))[0][0])
+    assert abs(first - off_first + w / 2 - 401 / 2) <= 1
+    narrow = colour_bar(40, cv2.COLORMAP_INFERNO, [], "P(depth within 5 %)")
+    _, off_first, _ = _label_box("P(depth within 5 %)")
+    assert off_first > 0  # so that a start left of column 0 shows
+    assert int(np.nonzero(narrow[30:].any(axis=(0, 2)))[0][0]) == off_first
+    w, _, _ = _label_box("8")
+    for width in (w + 3, w + 4):  # a label that cannot be 2 px inside the strip on both sides is left out
+        strip = colour_bar(width, cv2.COLORMAP_TURBO, [(0.5, "8")], "")
+        ticks, runs, _ = _bar_parts(strip, cv2.COLORMAP_TURBO)
+        assert len(ticks) == len(runs) == (width >= w + 4)
+
+
+@pytest.mark.parametrize("side", ["left", "inner", "inner_overlapping_bits", "right"])
+def test_colour_bar_drops_labels_closer_than_5_px_to_a_drawn_one(side: str) -> None:
+    """A label (and its tick) is drawn only if its box is at least 5 px from every label drawn before it;
+    the labels after a dropped one are still tried."""
+    from colmap_pvs.io.maps import colour_bar
+
+    width, (w_a, _, _), (w_b, _, _) = 201, _label_box("0"), _label_box("8")
+    for gap in (-3, 3, 4, 5, 6):
+        if side != "right":  # "0" at the left end (box 2 .. 2 + w_a) or 2 px in, "8" to its right
+            left_a = {"left": 2, "inner": 4, "inner_overlapping_bits": 10}[side]
+            left_b = left_a + w_a + gap
+            ticks = [((left_a + w_a // 2) / (width - 1), "0")]
+        else:  # "0" at the right end, "8" to its left
+            left_b = width - 2 - w_a - gap - w_b
+            ticks = [(1.0, "0")]
+        x_b = left_b + w_b // 2
+        far = 0.0 if side == "right" else 1.0
+        strip = colour_bar(width, cv2.COLORMAP_TURBO, [*ticks, (x_b / (width - 1), "8"), (far, "9")], "t")
+        drawn, runs, _ = _bar_parts(strip, cv2.COLORMAP_TURBO)
+        assert (x_b in drawn) == (gap >= 5), (side, gap)
+        assert len(drawn) == len(runs) == (3 if gap >= 5 else 2), (side, gap)
+
+
+def test_preview_bars_mark_the_documented_values(tmp_path: Path) -> None:
+    """The previews' bars are :func:`colour_bar` with the documented ticks and titles: a depth preview
+    near, far and the quarter values of its range (0..1 for a map without valid depths); an uncalibrated
+    confidence preview 0, 1 and 0.5; a calibrated one 0, 0.99, 0.9 and 0.5 on its scale."""
+    from colmap_pvs.io.maps import CONFIDENCE_NINES, colour_bar
+
+    depth = np.tile(np.linspace(2.0, 6.0, 400), (8, 1))
+    bar = _read_png(save_depth_preview(tmp_path / "d.png", depth, 2.0, 6.0, units="m"))[8:]
+    ticks = [(0.0, "2"), (1.0, "6"), (0.5, "4"), (0.25, "3"), (0.75, "5")]
+    assert np.array_equal(bar, colour_bar(400, cv2.COLORMAP_TURBO, ticks, "depth (m)"))
+    assert len(_bar_parts(bar, cv2.COLORMAP_TURBO)[0]) == 5  # wide enough for all five labels
+    empty = _read_png(save_depth_preview(tmp_path / "e.png", np.zeros((8, 400))))
+    assert not empty[:8].any()
+    ticks = [(0.0, "0"), (1.0, "1"), (0.5, "0.5"), (0.25, "0.25"), (0.75, "0.75")]
+    assert np.array_equal(empty[8:], colour_bar(400, cv2.COLORMAP_TURBO, ticks, "depth (scene units)"))
+
+    conf = np.tile(np.linspace(0.0, 1.0, 400), (8, 1))
+    raw = _read_png(save_confidence_preview(tmp_path / "r.png", conf, None))[8:]
+    ticks = [(0.0, "0"), (1.0, "1"), (0.5, "0.5")]
+    assert np.array_equal(raw, colour_bar(400, cv2.COLORMAP_INFERNO, ticks, "confidence score"))
+    cal = _read_png(save_confidence_preview(tmp_path / "c.png", conf, 0.05))[8:]
+    half = np.log10(2.0) / CONFIDENCE_NINES
+    ticks = [(0.0, "0"), (1.0, "0.99"), (0.5, "0.9"), (half, "0.5")]
+    assert np.array_equal(cal, colour_bar(400, cv2.COLORMAP_INFERNO, ticks, "P(depth within 5 %)"))
+
+
+@pytest.mark.parametrize("tolerance", [None, 0.05])
+def test_confidence_preview_out_of_range_values(tmp_path: Path, tolerance: float | None) -> None:
+    """Non-finite confidences are black (0); values outside [0, 1] are clipped, never wrapped around."""
+    conf = np.array([[np.inf, -np.inf, np.nan, -0.5, 0.0, 1.0, 1.5, 3.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # P = 1 without a division by zero
+        image = _read_png(save_confidence_preview(tmp_path / "c.png", conf, tolerance))[:1]
+    lut = _lut(cv2.COLORMAP_INFERNO, 256)
+    assert np.array_equal(image[0], lut[[0, 0, 0, 0, 0, 255, 255, 255]])
+
+
+def test_degenerate_shapes_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ShapeError, match="non-empty"):
+        write_array(tmp_path / "e.bin", np.zeros((0, 4), np.float32))
+    with pytest.raises(ShapeError, match=r"\[H, W\] map"):
+        colorize_depth(np.ones(5))
+    write_array(tmp_path / "two.bin", np.zeros((2, 3, 2), np.float32))
+    with pytest.raises(MapFormatError, match="it has 2 channels, expected 3"):
+        read_normal_map(tmp_path / "two.bin")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["two.bin"]
+
+
+def test_depth_preview_without_valid_depths_keeps_the_given_range(tmp_path: Path) -> None:
+    """An all-invalid depth map (every pixel filtered out) is black, and its bar still reads the range it
+    was given (stereo passes the view's depth range), not a made-up 0..1."""
+    from colmap_pvs.io.maps import colour_bar
+
+    depth = np.zeros((8, 400))
+    depth[0, 0] = np.nan
+    preview = _read_png(save_depth_preview(tmp_path / "d.png", depth, 2.0, 6.0, units="m"))
+    assert not preview[:8].any()
+    ticks = [(0.0, "2"), (1.0, "6"), (0.5, "4"), (0.25, "3"), (0.75, "5")]
+    assert np.array_equal(preview[8:], colour_bar(400, cv2.COLORMAP_TURBO, ticks, "depth (m)"))

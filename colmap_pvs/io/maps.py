@@ -240,14 +240,11 @@ def _check_2d(values: np.ndarray, path: str | os.PathLike) -> np.ndarray:
 def _depth_scale(depth: np.ndarray, vmin: float | None, vmax: float | None,
                  ) -> tuple[np.ndarray, float, float]:
     """The valid pixels of ``depth`` and the range ``(lo, hi)`` a preview colours it over (``vmin`` /
-    ``vmax``, by default the 2nd/98th percentiles of the valid values)."""
+    ``vmax``, by default the 2nd/98th percentiles of the valid values, or 0 / 1 where there are none)."""
     valid = np.isfinite(depth) & (depth > 0)
-    if valid.any():
-        lo, hi = np.percentile(depth[valid], [2.0, 98.0])
-        lo = float(lo) if vmin is None else float(vmin)
-        hi = float(hi) if vmax is None else float(vmax)
-    else:
-        lo, hi = 0.0, 1.0
+    lo, hi = np.percentile(depth[valid], [2.0, 98.0]) if valid.any() else (0.0, 1.0)
+    lo = float(lo) if vmin is None else float(vmin)
+    hi = float(hi) if vmax is None else float(vmax)
     return valid, lo, hi
 
 
