@@ -11,8 +11,8 @@ import torch
 from colmap_pvs.config import load_config, replace_config
 from colmap_pvs.errors import ConfigError
 from colmap_pvs.model import PVSNetConfig
+from colmap_pvs.model.runtime import resolve_device
 from colmap_pvs.train import TrainConfig, Trainer
-from colmap_pvs.train.trainer import resolve_device
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "benchmarks" / "configs" / "gpu_wide.train_config.json"
@@ -71,5 +71,5 @@ def test_the_recipe_trains_two_steps_on_the_cpu_and_resumes(analytic_scene, tmp_
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_device_cuda_without_cuda_is_a_config_error():
     assert resolve_device("auto") == torch.device("cpu")
-    with pytest.raises(ConfigError, match="device 'cuda'"):
+    with pytest.raises(ConfigError, match="--device cuda was requested"):
         resolve_device("cuda")

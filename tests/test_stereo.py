@@ -281,7 +281,7 @@ def test_parameter_free_switches_can_be_flipped_at_inference(tmp_path, tiny_chec
     cfg = stereo_config(workspace_path=tmp_path, checkpoint=tiny_checkpoint, device="cpu")
     for prior, guidance in (("on", "checkpoint"), ("on", "on"), ("off", "checkpoint")):
         changed = replace_config(cfg, sparse_prior=prior, sparse_guidance=guidance)
-        model, path, _ = stereo_network.load_stereo_model(changed, stereo_network.resolve_device("cpu"))
+        model, path, _ = stereo_network.load_stereo_model(changed, "cpu")
         assert path == tiny_checkpoint
         assert model.config.sparse_prior == (prior == "on")
         assert model.config.sparse_guidance == (guidance == "on")

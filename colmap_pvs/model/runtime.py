@@ -16,13 +16,25 @@ from __future__ import annotations
 import os
 from typing import TYPE_CHECKING
 
-from ..errors import MemoryBudgetError
+import torch
+
+from ..errors import ConfigError, MemoryBudgetError
 
 if TYPE_CHECKING:
     from .config import PVSNetConfig
 
 #: Target size of one chunk of a temporary (warped features, sampling grid, upsampled rows).
 CHUNK_BYTES = 16 * 1024 * 1024
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of a ``device`` setting (``stereo``'s and ``train``'s): ``cpu``, ``cuda``, or
+    ``auto`` (CUDA when available, else the CPU)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda was requested but torch.cuda.is_available() is False")
+    return torch.device(name)
 
 
 def chunk_bytes() -> int:

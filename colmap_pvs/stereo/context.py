@@ -23,10 +23,11 @@ from ..io.files import file_sha256
 from ..io.images import load_image, resize_image
 from ..io.maps import fusion_intrinsics
 from ..io.workspace import Workspace, load_workspace, read_patch_match_cfg
+from ..model.runtime import resolve_device
 from ..types import Image, SparseModel
 from ..views import ViewSelection, ViewSelectionConfig, reference_sources, select_views
 from .config import Stage, StereoConfig
-from .network import base_checkpoint_path, load_stereo_model, resolve_device
+from .network import base_checkpoint_path, load_stereo_model
 from .reference import Reference
 
 logger = logging.getLogger(__name__)

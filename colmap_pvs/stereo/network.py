@@ -1,4 +1,4 @@
-"""The network of the ``stereo`` step: device, checkpoint loading and one forward pass."""
+"""The network of the ``stereo`` step: checkpoint loading and one forward pass."""
 
 from __future__ import annotations
 
@@ -9,18 +9,9 @@ import torch
 import torch.nn.functional as F
 
 from ..config import replace_config
-from ..errors import CheckpointError, ColmapPVSError
+from ..errors import CheckpointError
 from . import config as settings
 from .config import MODEL_SWITCHES, StereoConfig
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` picks CUDA when available."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ColmapPVSError("--device cuda was requested but torch.cuda.is_available() is False")
-    return torch.device(name)
 
 
 def base_checkpoint_path(config: StereoConfig) -> Path:

@@ -60,6 +60,7 @@ from ..config import config_from_dict, config_json_bytes, config_to_dict
 from ..errors import CheckpointError, ColmapPVSError, ConfigError
 from ..io.files import atomic_write_bytes
 from ..model import PVSNet, load_checkpoint, save_checkpoint
+from ..model.runtime import resolve_device
 from .config import RESUMABLE_CHANGES, TrainConfig
 from .data import StepSampler, build_datasets
 from .logs import _fmt, _read_csv, _write_csv, plot_curves
@@ -109,15 +110,6 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 def _to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in batch.items()}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``TrainConfig.device`` as a torch device (``auto``: cuda when available, else cpu)."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("TrainConfig: device 'cuda' was requested but torch.cuda.is_available() is False")
-    return torch.device(name)
 
 
 class Trainer:
