@@ -78,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     n_photo = len(res.processed) + len(res.auxiliary)
     n_geo = len(res.geometric_processed)
     n_fill = len(res.filled_processed)
+    n_confirm = len(res.confirm_processed)
     lines = [
         f"{len(refs)} references + {len(res.auxiliary)} auxiliary sources, {args.max_image_size} px, "
         f"N={args.num_views}, {args.threads} threads; wall {wall:.1f} s, peak RSS {rss:.0f} MB",
@@ -85,22 +86,25 @@ def main(argv: list[str] | None = None) -> int:
         "| pass / stage | total s | s per map |",
         "|---|---|---|",
     ]
-    per = {"photometric": max(n_photo, 1), "geometric": max(n_geo, 1), "filled": max(n_fill, 1)}
+    per = {"photometric": max(n_photo, 1), "geometric": max(n_geo, 1), "filled": max(n_fill, 1),
+           "confirm": max(n_confirm, 1)}
     lines.append(f"| prepare (workspace, model, view selection) | {res.timings.get('prepare', 0):.2f} | |")
-    for pass_name in ("photometric", "geometric", "filled"):
+    for pass_name in ("photometric", "geometric", "filled", "confirm"):
         if pass_name not in res.pass_seconds:
             continue
         sec = res.pass_seconds[pass_name]
         lines.append(f"| **{pass_name} pass** ({per[pass_name]} maps) | {sec:.1f} | "
                      f"**{sec / per[pass_name]:.2f}** |")
         for key, value in res.timings.items():
-            stage_pass = key.split(".")[0] if key.startswith(("geometric.", "filled.")) else "photometric"
+            later = key.startswith(("geometric.", "filled.", "confirm."))
+            stage_pass = key.split(".")[0] if later else "photometric"
             if key == "prepare" or stage_pass != pass_name:
                 continue
             lines.append(f"| &nbsp; {key} | {value:.2f} | {value / per[pass_name]:.3f} |")
     if n_photo and n_geo:
         total = res.pass_seconds["photometric"] / n_photo + res.pass_seconds["geometric"] / n_geo
         total += res.pass_seconds["filled"] / n_fill if n_fill else 0.0
+        total += res.pass_seconds["confirm"] / n_confirm if n_confirm else 0.0
         lines.append(f"| **every default pass, per image** (sum of per-map times) | | **{total:.2f}** |")
     table = "\n".join(lines)
     print(table)
