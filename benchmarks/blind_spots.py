@@ -181,11 +181,9 @@ def main() -> int:
         print(f"no photometric maps of the frames --stride {a.stride} --offset {a.offset} in every tag")
         return 2
     K_data = np.loadtxt(a.data / "K.txt").reshape(3, 3)
-    # totals[tag][kind][class] = [pixels, predicted, within]; frames[class] = [(pct, name, pixels)]
-    totals = {t: {k: {c: [0, 0, 0] for c in CLASSES} for k in a.kinds} for t in a.tags}
-    frames: dict[str, list[tuple[float, str, int]]] = {c: [] for c in CLASSES}
-    per_frame: dict[str, dict] = {}
-    for name in refs:
+
+    def frame(name: str) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Frame ``name``'s GT depth, image at the GT's size and class masks."""
         gt = read_gt_depth(a.data / "depth" / name, 0.001)
         h, w = gt.shape
         image = cv2.resize(cv2.imread(str(a.data / "images" / name), cv2.IMREAD_COLOR), (w, h),
@@ -193,7 +191,15 @@ def main() -> int:
         grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64) / 255.0
         cam = model.cameras[model.image_by_name(name).camera_id]
         K = np.diag([w / cam.width, h / cam.height, 1.0]) @ K_data
-        masks = class_masks(gt, grey, K, sel.references[name].depth_range)
+        return gt, image, class_masks(gt, grey, K, sel.references[name].depth_range)
+
+    # totals[tag][kind][class] = [pixels, predicted, within]; frames[class] = [(pct, name, pixels)]
+    totals = {t: {k: {c: [0, 0, 0] for c in CLASSES} for k in a.kinds} for t in a.tags}
+    frames: dict[str, list[tuple[float, str, int]]] = {c: [] for c in CLASSES}
+    per_frame: dict[str, dict] = {}
+    for name in refs:
+        gt, _, masks = frame(name)
+        h, w = gt.shape
         per_frame[name] = {"pixels": {c: int(m.sum()) for c, m in masks.items()}}
         for tag in a.tags:
             for kind in a.kinds:
@@ -241,14 +247,9 @@ def main() -> int:
         for c, (pct, name, _) in worst.items():
             if c in ("all", "inside range"):
                 continue
-            gt = read_gt_depth(a.data / "depth" / name, 0.001)
+            gt, image, masks = frame(name)
             h, w = gt.shape
-            image = cv2.resize(cv2.imread(str(a.data / "images" / name), cv2.IMREAD_COLOR), (w, h),
-                               interpolation=cv2.INTER_AREA)
-            grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64) / 255.0
-            cam = model.cameras[model.image_by_name(name).camera_id]
-            K = np.diag([w / cam.width, h / cam.height, 1.0]) @ K_data
-            mask = class_masks(gt, grey, K, sel.references[name].depth_range)[c]
+            mask = masks[c]
             pred = read_depth_map(work / "quick" / f"{a.tags[0]}_clean" / "stereo" / "depth_maps"
                                   / f"{name}.photometric.bin")
             pred = pred if pred.shape == (h, w) else resize_nearest(pred, h, w)
