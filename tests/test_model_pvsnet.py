@@ -322,3 +322,30 @@ def test_frustum_weights_train_with_gradients():
     sum(d.mean() for d in out.depths).backward()
     grads = [p.grad for p in model.parameters() if p.requires_grad]
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
+
+
+def test_a_views_planes_are_sampled_in_parallel_parts_with_the_same_output(monkeypatch):
+    """With two torch threads one view's planes are sampled as two batch entries (the CPU's ``grid_sample``
+    runs batch entries in parallel, not the rows of one): the output is the same, bit for bit."""
+    import colmap_pvs.model.pvsnet as pvsnet_module
+
+    assert [pvsnet_module._sampling_parts(*a) for a in ((1, 8, 2), (1, 7, 2), (2, 8, 2), (1, 8, 1), (1, 9, 3))] \
+        == [2, 1, 1, 1, 3]
+    real, used = pvsnet_module._sampling_parts, []
+
+    def two_threads(batch, planes, threads):
+        used.append(real(batch, planes, 2))
+        return used[-1]
+
+    model = PVSNet().eval()
+    inputs = make_inputs(1, 3, 40, 56)
+    outs = []
+    for parts in (two_threads, lambda batch, planes, threads: 1):
+        monkeypatch.setattr(pvsnet_module, "_sampling_parts", parts)
+        with torch.inference_mode():
+            outs.append(model(*inputs))
+    assert max(used) == 2
+    for name in ("depth", "confidence", "visibility", "depths", "confidences"):
+        split, whole = getattr(outs[0], name), getattr(outs[1], name)
+        pairs = zip(split, whole, strict=True) if isinstance(split, list | tuple) else [(split, whole)]
+        assert all(torch.equal(a, b) for a, b in pairs), name

@@ -7,6 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from colmap_pvs.errors import ShapeError
 from colmap_pvs.model.planes import render_plane
 from colmap_pvs.model.warping import (
     homography_grid,
@@ -15,6 +16,7 @@ from colmap_pvs.model.warping import (
     relative_pose,
     scale_intrinsics,
     warp_features,
+    warp_features_parts,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -168,3 +170,18 @@ def test_inside_source_matches_projecting_each_pixel():
     behind = torch.from_numpy(np.diag([-1.0, 1.0, -1.0, 1.0]))[None]
     rays, b = homography_rays(Kt, Kt, behind, H, W, torch.float64)
     assert not inside_source(rays, b, depths, H, W).any()
+
+
+def test_planes_sampled_in_parts_are_the_planes_sampled_at_once():
+    """``warp_features_parts``: entry ``j`` holds planes ``j * D / parts ...``, each value the same bits as
+    :func:`warp_features`'s (the rows a batch entry samples are the same rows)."""
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(1, 8, 12, 16, generator=g)
+    grid = torch.rand(1, 6 * 12, 16, 2, generator=g) * 2.4 - 1.2  # some outside the map
+    whole = warp_features(src, grid, 6)
+    for parts in (1, 2, 3, 6):
+        split = warp_features_parts(src, grid, 6, parts)
+        assert split.shape == (parts, 8, 6 // parts, 12, 16)
+        assert torch.equal(split.transpose(0, 1).reshape(1, 8, 6, 12, 16), whole), parts
+    with pytest.raises(ShapeError, match="6 planes of batch 1 in 4 parts"):
+        warp_features_parts(src, grid, 6, 4)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import threading
 from pathlib import Path
 
 import cv2
@@ -1425,7 +1426,8 @@ def test_a_geometric_check_is_reused_only_under_its_own_fingerprint():
     from types import SimpleNamespace
 
     seeds, depth, conf = (np.full((2, 3), v, np.float32) for v in (1.0, 2.0, 0.5))
-    ctx = SimpleNamespace(seed_cache={"a.png": ("5" * 64, stereo_geometric.Checked(seeds, depth, conf))})
+    ctx = SimpleNamespace(seed_cache={"a.png": ("5" * 64, stereo_geometric.Checked(seeds, depth, conf))},
+                          seed_lock=threading.Lock())
     for other in ("4" * 64, "6" * 64):
         assert stereo_geometric._reused_check(ctx, "a.png", other, Timer()) is None
     reused = stereo_geometric._reused_check(ctx, "a.png", "5" * 64, Timer())
@@ -1442,7 +1444,7 @@ def test_the_seed_cache_keeps_the_most_recently_used(monkeypatch):
     from types import SimpleNamespace
 
     monkeypatch.setattr(stereo_geometric, "SEED_CACHE_SIZE", 2)
-    ctx = SimpleNamespace(seed_cache=OrderedDict())
+    ctx = SimpleNamespace(seed_cache=OrderedDict(), seed_lock=threading.Lock())
     checked = stereo_geometric.Checked(np.zeros((2, 3), np.float32))
     for name, kept in (("a", "a"), ("b", "ab"), ("c", "bc"), ("b", "cb"), ("d", "bd")):
         stereo_geometric._remember_seeds(ctx, name, "f", checked)
@@ -1488,3 +1490,39 @@ def test_a_record_of_an_older_colmap_pvs_is_named_as_such(synthetic_ws, tmp_path
     assert run_stereo(cfg).processed == [names[0]]
     line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("stereo photometric:"))
     assert f"recorded by an older colmap-pvs (without the images' hashes): {names[0]}" in line, line
+
+
+def test_references_in_threads_write_the_same_maps_and_check_each_image_once(synthetic_ws, tmp_path,
+                                                                             tiny_checkpoint, monkeypatch):
+    """The geometric and completion passes run two references at once (``REFERENCE_THREADS``, in the pass's
+    own threads): every map is the same bytes as one reference at a time, and each image's photometric maps
+    are still checked once (its own pass and the other references' seeds share the check)."""
+    import collections
+
+    import torch
+
+    import colmap_pvs.stereo.local as local_module
+
+    real, written = stereo_geometric._check_photometric, {}
+    threads_before = torch.get_num_threads()
+    try:
+        for workers in (1, 2):
+            ws = _copy(synthetic_ws, tmp_path / f"workers{workers}")
+            checks, threads = collections.Counter(), set()
+
+            def counting(ctx, name, setup, kept=True):
+                checks[name] += 1
+                threads.add(threading.current_thread().name.rsplit("_", 1)[0])
+                return real(ctx, name, setup, kept)
+
+            monkeypatch.setattr(local_module, "REFERENCE_THREADS", workers)
+            monkeypatch.setattr(stereo_geometric, "_check_photometric", counting)
+            run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
+                                     max_image_size=64, min_confidence=0, threads=2))
+            assert len(checks) == 4 and set(checks.values()) == {1}, (workers, checks)
+            assert threads == ({"MainThread"} if workers == 1 else {"stereo-geometric"}), threads
+            written[workers] = {p.relative_to(ws): p.read_bytes() for p in (ws / "stereo").rglob("*.bin")}
+    finally:
+        torch.set_num_threads(threads_before)
+    assert written[1].keys() == written[2].keys() and len(written[1]) >= 4 * 7
+    assert [p for p in written[1] if written[1][p] != written[2][p]] == []

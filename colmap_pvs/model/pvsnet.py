@@ -61,6 +61,7 @@ from .warping import (
     relative_pose,
     scale_intrinsics,
     warp_features,
+    warp_features_parts,
 )
 
 logger = logging.getLogger(__name__)
@@ -526,12 +527,24 @@ class PVSNet(nn.Module):
         # The reference side of the correlation, weighted and scaled once per source.
         ref = correlation_reference(feats[:, 0], G, pixel_weight)
         step = plane_chunk(B * C * h * w * feats.element_size(), D)
+        threads = torch.get_num_threads() if feats.device.type == "cpu" else 1
         for d0 in range(0, D, step):
             d1 = min(D, d0 + step)
             grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
-            warped = warp_features(feats[:, src], grid, d1 - d0)
+            parts = _sampling_parts(B, d1 - d0, threads)
+            if parts == 1:
+                warped = warp_features(feats[:, src], grid, d1 - d0)
+                del grid
+                correlate_into(ref, warped, out[:, :, d0:d1], accumulate=accumulate is not None)
+                del warped
+                continue
+            warped = warp_features_parts(feats[:, src], grid, d1 - d0, parts)
             del grid
-            correlate_into(ref, warped, out[:, :, d0:d1], accumulate=accumulate is not None)
+            per = (d1 - d0) // parts
+            for j in range(parts):
+                lo = d0 + j * per
+                correlate_into(ref, warped[j : j + 1], out[:, :, lo : lo + per],
+                               accumulate=accumulate is not None)
             del warped
         return out
 
@@ -559,6 +572,14 @@ class PVSNet(nn.Module):
     def num_parameters(self) -> int:
         """Number of trainable parameters."""
         return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+
+def _sampling_parts(batch: int, planes: int, threads: int) -> int:
+    """In how many batch entries one view's ``planes`` are sampled (:func:`warp_features_parts`): up to
+    ``threads`` equal parts for a single view on the CPU, else 1."""
+    if batch != 1 or threads < 2:
+        return 1
+    return max(k for k in range(1, min(threads, planes) + 1) if planes % k == 0)
 
 
 def _upsample_nearest(x: torch.Tensor, factor: int) -> torch.Tensor:

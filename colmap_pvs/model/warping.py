@@ -20,6 +20,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..errors import ShapeError
+
 _Z_EPS = 1e-6
 
 
@@ -161,6 +163,22 @@ def warp_features(src: torch.Tensor, grid: torch.Tensor, num_planes: int) -> tor
     B, C, h, w = src.shape
     out = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return out.view(B, C, num_planes, h, w)
+
+
+def warp_features_parts(src: torch.Tensor, grid: torch.Tensor, num_planes: int, parts: int) -> torch.Tensor:
+    """:func:`warp_features` of one view (``B = 1``) with its ``num_planes`` planes sampled as ``parts``
+    batch entries of ``num_planes / parts`` consecutive planes each: ``[1, C, h, w]``, ``[1, D*h, w, 2]`` ->
+    ``[parts, C, D / parts, h, w]``, entry ``j`` holding planes ``j * D / parts ...``; the same values as
+    :func:`warp_features`. The CPU's ``grid_sample`` runs its batch entries in parallel, not the rows of one.
+    """
+    _, C, h, w = src.shape
+    per = num_planes // parts
+    if src.shape[0] != 1 or per * parts != num_planes:
+        raise ShapeError(f"warp_features_parts: {num_planes} planes of batch {src.shape[0]} "
+                         f"in {parts} parts")
+    out = F.grid_sample(src.expand(parts, C, h, w), grid.view(parts, per * h, w, 2), mode="bilinear",
+                        padding_mode="zeros", align_corners=False)
+    return out.view(parts, C, per, h, w)
 
 
 def relative_pose(cam_from_world: torch.Tensor, src: int, ref: int = 0) -> torch.Tensor:

@@ -247,6 +247,8 @@ class StereoContext:
     image_hashes: dict[str, str] = field(default_factory=dict)  # name -> sha256 of its file, once a run
     reference_cache: dict[str, Reference] = field(default_factory=dict)  # name -> its Reference, once a run
     _hash_lock: threading.Lock = field(default_factory=threading.Lock)
+    seed_lock: threading.Lock = field(default_factory=threading.Lock)  # guards seed_cache
+    _check_locks: dict[str, threading.Lock] = field(default_factory=dict)
 
     def reference(self, name: str) -> Reference:
         """Image ``name``'s :class:`~colmap_pvs.stereo.reference.Reference` in this run (made once: its
@@ -255,10 +257,15 @@ class StereoContext:
         found = self.reference_cache.get(name)
         if found is None:
             entry = self.selection.references.get(name)
-            found = Reference.of(self.workspace, name,
-                                 depth_range=None if entry is None else entry.depth_range)
-            self.reference_cache[name] = found
+            found = self.reference_cache.setdefault(name, Reference.of(
+                self.workspace, name, depth_range=None if entry is None else entry.depth_range))
         return found
+
+    def check_lock(self, name: str) -> threading.Lock:
+        """The lock held while image ``name``'s photometric maps are checked against its sources, so that
+        references run in threads check each image once (the others then find it in ``seed_cache``)."""
+        with self._hash_lock:
+            return self._check_locks.setdefault(name, threading.Lock())
 
     def image_sha256(self, name: str) -> str:
         """sha256 of image ``name``'s file (hashed once per run; the photometric provenance records it)."""

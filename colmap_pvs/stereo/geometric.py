@@ -273,19 +273,30 @@ def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: b
 
 
 def _remember_seeds(ctx: StereoContext, name: str, fingerprint: str, checked: Checked) -> None:
-    ctx.seed_cache[name] = (fingerprint, checked)
-    ctx.seed_cache.move_to_end(name)
-    while len(ctx.seed_cache) > SEED_CACHE_SIZE:
-        ctx.seed_cache.popitem(last=False)
+    with ctx.seed_lock:
+        ctx.seed_cache[name] = (fingerprint, checked)
+        ctx.seed_cache.move_to_end(name)
+        while len(ctx.seed_cache) > SEED_CACHE_SIZE:
+            ctx.seed_cache.popitem(last=False)
+
+
+def _cached_check(ctx: StereoContext, name: str) -> tuple[str, Checked] | None:
+    with ctx.seed_lock:
+        return ctx.seed_cache.get(name)
 
 
 def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarray:
     """The seeds of ``name`` (its check's ``setup``) for another reference's geometric pass: from this
     run's memory or a current seed map on disk, else computed from the photometric maps (the same
     check as ``name``'s own geometric pass, so the same seeds whoever makes them) and written."""
+    with ctx.check_lock(name):
+        return _source_seeds_locked(ctx, name, setup)
+
+
+def _source_seeds_locked(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarray:
     paths = ctx.reference(name).paths
     wanted = fingerprint(setup.settings)
-    cached = ctx.seed_cache.get(name)
+    cached = _cached_check(ctx, name)
     if cached is not None and cached[0] == wanted:
         return cached[1].seeds
     if not ctx.config.overwrite:
@@ -309,7 +320,7 @@ def _source_seeds(ctx: StereoContext, name: str, setup: CheckSetup) -> np.ndarra
 def _reused_check(ctx: StereoContext, name: str, seed_fingerprint: str, timer: Timer) -> Checked | None:
     """The check of ``name``'s photometric maps that another reference's pass made earlier in this run
     (for its seeds; :func:`_source_seeds`), or ``None``."""
-    cached = ctx.seed_cache.get(name)
+    cached = _cached_check(ctx, name)
     if cached is None or cached[0] != seed_fingerprint or cached[1].depth is None:
         return None
     with timer.step("reused_check"):
@@ -424,8 +435,10 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
         if isinstance(checked, str):
             return RefOutcome(name, "geometric", "skipped", checked)
     else:
-        checked = (_reused_check(ctx, name, seed_fingerprint, timer)
-                   or _checked_photometric(ctx, name, setup, timer))
+        with ctx.check_lock(name):  # not while another reference's pass checks it for its seeds
+            checked = (_reused_check(ctx, name, seed_fingerprint, timer)
+                       or _checked_photometric(ctx, name, setup, timer))
+            _remember_seeds(ctx, name, seed_fingerprint, Checked(checked.seeds))  # its seeds only, from now
     depth, conf, splatted = checked.depth, checked.conf, 0
     if splat_sources:
         depth, conf, splatted = _add_splatted(ctx, name, setup, splat_sources, checked, timer)
@@ -440,7 +453,8 @@ def geometric_pass(ctx: StereoContext, name: str) -> RefOutcome:
     extra = {"image_size": [w, h], "sources": setup.sources, "missing_sources": setup.missing,
              "kept_fraction": float((depth > 0).mean()), "splatted_fraction": splatted / depth.size,
              "reestimated": checked.reestimated}
-    _remember_seeds(ctx, name, seed_fingerprint, Checked(checked.seeds))  # its own pass reruns its own check
+    if checked.reestimated:
+        _remember_seeds(ctx, name, seed_fingerprint, Checked(checked.seeds))
     maps = PassMaps(depth, conf, normals, seeds=checked.seeds)
     ref = ref.with_pass("geometric", maps, PassRecord(settings, extra, seed_fingerprint), depth_range=dr,
                         sources=setup.prov.get("sources", []))

@@ -7,8 +7,10 @@ Python users (and the Ray backend) use :func:`~colmap_pvs.stereo.context.prepare
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import torch
 from tqdm import tqdm
 
 from ..config import config_json_bytes
@@ -62,6 +64,21 @@ def auxiliary_references(ctx: StereoContext) -> list[str]:
     return sorted(extra)
 
 
+#: References whose geometric or completion pass runs at once, in threads: their numpy work releases the
+#: GIL in its array loops, so two keep two cores busy. The confirmation stays one at a time (it rewrites
+#: the geometric maps that the other references' confirmations read).
+REFERENCE_THREADS = 2
+
+
+def reference_threads(config: StereoConfig, stage: Stage) -> int:
+    """How many references ``stage`` runs at once: :data:`REFERENCE_THREADS` for the geometric pass
+    (unless it runs the network again, ``geom_reestimate``) and the completion, at most torch's thread
+    count (``--threads``); 1 for the others."""
+    if stage not in ("geometric", "filled") or (stage == "geometric" and config.geometric.reestimate):
+        return 1
+    return max(1, min(REFERENCE_THREADS, torch.get_num_threads()))
+
+
 _PASS_LABELS = {"geometric": ("stereo (geometric)", "geometric pass"),
                 "filled": ("stereo (dense completion)", "dense completion"),
                 "confirm": ("stereo (confirmed completion)", "confirmed completion")}
@@ -74,12 +91,17 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
     timer = Timer()
     desc, label = _PASS_LABELS[stage]
     processed, done, skipped = (getattr(result, f"{stage}_{k}") for k in ("processed", "done", "skipped"))
-    for name in tqdm(names, desc=desc, unit="image"):
-        if name in skip:
-            if stage in ("filled", "confirm"):  # never keep a completion of maps this run did not make
+    if stage in ("filled", "confirm"):  # never keep a completion of maps this run did not make
+        for name in names:
+            if name in skip:
                 remove_filled(ctx.reference(name))
-            continue
-        out = process_reference(ctx, name, stage)
+    todo = [name for name in names if name not in skip]
+    workers = reference_threads(ctx.config, stage)
+    with ThreadPoolExecutor(workers, thread_name_prefix=f"stereo-{stage}") as pool:
+        run = pool.map(lambda name: process_reference(ctx, name, stage), todo) if workers > 1 else (
+            process_reference(ctx, name, stage) for name in todo)
+        outs = list(tqdm(run, total=len(todo), desc=desc, unit="image"))
+    for name, out in zip(todo, outs, strict=True):
         outcomes.append(out)
         if out.status == "done":
             done.append(name)
