@@ -8,6 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ShapeError
+from .runtime import exporting
+from .warping import adjugate3x3
 
 
 def group_correlation(
@@ -183,6 +185,17 @@ def _box_max(x: torch.Tensor, r: int, f: int = 1) -> torch.Tensor:
     return x
 
 
+def _solve3x3(A: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.linalg.solve_ex(A, rhs)`` for ``[..., 3, 3]`` systems; when exporting, Cramer's rule (no ONNX
+    op solves a linear system): the same solution up to rounding, ``info`` nonzero where ``det(A) == 0``."""
+    if not exporting():
+        return torch.linalg.solve_ex(A, rhs)
+    batch = A.shape[:-2]
+    adj, det = adjugate3x3(A.reshape(-1, 3, 3))
+    sol = (adj @ rhs.reshape(-1, 3, 1)) / det.view(-1, 1, 1)
+    return sol.view(*batch, 3, 1), (det == 0).to(torch.int32).view(batch)
+
+
 def affine_fill_inverse_depth(
     hint: torch.Tensor,
     sigmas: tuple[float, ...] = (2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0),
@@ -241,7 +254,7 @@ def affine_fill_inverse_depth(
         lam = (slope_damping * S + 1e-6) * (sigma / scale) ** 2
         A = torch.stack([S, a12, a13, a12, a22 + lam, a23, a13, a23, a33 + lam], -1).view(B, h, w, 3, 3)
         rhs = torch.stack([Sz, Sxz - x0 * Sz, Syz - y0 * Sz], -1).unsqueeze(-1)
-        sol, info = torch.linalg.solve_ex(A + 1e-12 * eye, rhs)
+        sol, info = _solve3x3(A + 1e-12 * eye, rhs)
         fit = sol[..., 0, 0].unsqueeze(1)
         r = max(1, int(math.ceil(3.0 * sigma)))
         f = _pool_factor(sigma)

@@ -49,7 +49,7 @@ from .cost import (
 from .features import FeatureNet
 from .layers import set_compute_dtype, to_volume_format
 from .regularization import CoarseRegularizer, StageRegularizer
-from .runtime import plane_chunk
+from .runtime import exporting, plane_chunk
 from .visibility import CostAccumulator, VisibilityNet, normalized_weights, truncate_visibility
 from .warping import (
     grid_from_rays,
@@ -235,6 +235,8 @@ class PVSNet(nn.Module):
                 f"[{B}, 1, {H}, {W}]",
                 isinstance(sparse_depth, torch.Tensor) and tuple(sparse_depth.shape) == (B, 1, H, W),
             )
+        if exporting():  # a traced graph holds no check of input values (shapes are checked above)
+            return
         if not bool(torch.all(depth_min > 0)):
             raise ValueError(f"PVSNet: depth_min must be > 0, got {depth_min.tolist()}")
         if not bool(torch.all(depth_max > depth_min)):

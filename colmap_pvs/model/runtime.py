@@ -37,6 +37,13 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def exporting() -> bool:
+    """Whether the forward pass is being traced for export (``torch.export``, ``torch.onnx.export``,
+    ``torch.jit.trace``): the model then skips its checks of input values and its branches on tensor
+    values, which a traced graph cannot hold, and computes the same results with ops that export."""
+    return bool(torch.compiler.is_exporting() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+
+
 def chunk_bytes() -> int:
     """The current :data:`CHUNK_BYTES` (read at call time, so tests can lower it)."""
     return CHUNK_BYTES

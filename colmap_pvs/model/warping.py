@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ShapeError
+from .runtime import exporting
 
 _Z_EPS = 1e-6
 
@@ -91,7 +92,8 @@ def homography_rays(
     device = K_ref.device
     # Compose the per-batch 3x3 / 3x1 maps in float64 for accuracy.
     K_ref64, K_src64, T64 = K_ref.double(), K_src.double(), src_from_ref.double()
-    A = (K_src64 @ T64[:, :3, :3] @ torch.linalg.inv(K_ref64)).to(dtype)  # [B, 3, 3]
+    K_ref_inv = inverse3x3(K_ref64) if exporting() else torch.linalg.inv(K_ref64)
+    A = (K_src64 @ T64[:, :3, :3] @ K_ref_inv).to(dtype)  # [B, 3, 3]
     b = (K_src64 @ T64[:, :3, 3:]).to(dtype)  # [B, 3, 1]
     v, u = torch.meshgrid(
         torch.arange(height, dtype=dtype, device=device) + 0.5,
@@ -127,7 +129,7 @@ def grid_from_rays(
     gy.mul_(inv_z).mul_(2.0 / height).sub_(1.0).clamp_(-2.0, 2.0)
     if torch.is_grad_enabled():
         grid = torch.stack([gx, gy], -1)
-    if bool(invalid.any()):
+    if exporting() or bool(invalid.any()):  # the same values either way
         grid.masked_fill_(invalid.unsqueeze(-1), -2.0)
     return grid.view(B, D * height, width, 2)
 
@@ -179,6 +181,28 @@ def warp_features_parts(src: torch.Tensor, grid: torch.Tensor, num_planes: int, 
     out = F.grid_sample(src.expand(parts, C, h, w), grid.view(parts, per * h, w, 2), mode="bilinear",
                         padding_mode="zeros", align_corners=False)
     return out.view(parts, C, per, h, w)
+
+
+def adjugate3x3(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(adj(A), det(A))`` of ``[M, 3, 3]`` matrices (``[M, 3, 3]``, ``[M]``) in closed form: what an
+    exported graph computes in place of ``torch.linalg`` (which no ONNX op implements)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    entries = [
+        e * i - f * h, c * h - b * i, b * f - c * e,
+        f * g - d * i, a * i - c * g, c * d - a * f,
+        d * h - e * g, b * g - a * h, a * e - b * d,
+    ]
+    adj = torch.stack(entries, 1).view(A.shape[0], 3, 3)
+    det = a * entries[0] + b * entries[3] + c * entries[6]
+    return adj, det
+
+
+def inverse3x3(A: torch.Tensor) -> torch.Tensor:
+    """``A^-1`` of ``[M, 3, 3]`` matrices by :func:`adjugate3x3` (``torch.linalg.inv`` up to rounding)."""
+    adj, det = adjugate3x3(A)
+    return adj / det.view(-1, 1, 1)
 
 
 def relative_pose(cam_from_world: torch.Tensor, src: int, ref: int = 0) -> torch.Tensor:
