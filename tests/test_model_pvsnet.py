@@ -329,8 +329,8 @@ def test_a_views_planes_are_sampled_in_parallel_parts_with_the_same_output(monke
     runs batch entries in parallel, not the rows of one): the output is the same, bit for bit."""
     import colmap_pvs.model.pvsnet as pvsnet_module
 
-    assert [pvsnet_module._sampling_parts(*a) for a in ((1, 8, 2), (1, 7, 2), (2, 8, 2), (1, 8, 1), (1, 9, 3))] \
-        == [2, 1, 1, 1, 3]
+    cases = ((1, 8, 2), (1, 7, 2), (2, 8, 2), (1, 8, 1), (1, 9, 3))  # (batch, planes, threads)
+    assert [pvsnet_module._sampling_parts(*case) for case in cases] == [2, 1, 1, 1, 3]
     real, used = pvsnet_module._sampling_parts, []
 
     def two_threads(batch, planes, threads):

@@ -1510,7 +1510,7 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
             ws = _copy(synthetic_ws, tmp_path / f"workers{workers}")
             checks, threads = collections.Counter(), set()
 
-            def counting(ctx, name, setup, kept=True):
+            def counting(ctx, name, setup, kept=True, checks=checks, threads=threads):
                 checks[name] += 1
                 threads.add(threading.current_thread().name.rsplit("_", 1)[0])
                 return real(ctx, name, setup, kept)
