@@ -5,15 +5,18 @@ config dataclass (so defaults live in one place) and calls the same library func
 a Python user would call. Installed as ``colmap_pvs.cli`` (never as a top-level ``cli``).
 """
 
+# ruff: noqa: E402 (the imports below come after OpenMP's environment is set)
+
 from __future__ import annotations
 
 import os
 
-# OpenMP's default busy-waiting makes torch runs on a shared CPU much slower (benchmarks/RESULTS.md).
-# Set before torch is imported (the CLI is an entry point; the library itself never does this).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from colmap_pvs.openmp import set_wait_env
 
-import argparse  # noqa: E402
+# How OpenMP's threads wait (colmap_pvs.openmp): set before torch is imported (the CLI is an entry point).
+set_wait_env(os.environ)
+
+import argparse
 import difflib
 import importlib
 import logging

@@ -159,3 +159,23 @@ def test_every_recorded_training_config_still_loads(path):
     # relative to its root), not from the default checkpoint, which the next release replaces
     init = cfg["init_weights"]
     assert init is None or ((_ROOT / init).is_file() and Path(init).name != "pvsnet_default.pt"), init
+
+
+@pytest.mark.parametrize("preset, expected", [
+    ({}, {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "1000"}),
+    ({"OMP_WAIT_POLICY": "ACTIVE"}, {"OMP_WAIT_POLICY": "ACTIVE", "GOMP_SPINCOUNT": None}),
+    ({"GOMP_SPINCOUNT": "5"}, {"OMP_WAIT_POLICY": None, "GOMP_SPINCOUNT": "5"}),
+])
+def test_the_command_line_sets_how_openmp_waits_unless_the_user_did(preset, expected):
+    """Importing the command line (before it imports torch) sets OpenMP's short spin, then sleep
+    (``colmap_pvs.openmp.WAIT_ENV``), and keeps a user's own setting of either variable."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    code = ("import json, os, sys; import colmap_pvs.cli.main; "
+            "print(json.dumps({k: os.environ.get(k) for k in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')}))")
+    out = subprocess.run([sys.executable, "-c", code], env={**env, **preset}, capture_output=True, text=True,
+                         check=True).stdout
+    assert json.loads(out.splitlines()[-1]) == expected

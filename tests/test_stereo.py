@@ -1501,7 +1501,6 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
 
     import torch
 
-    import colmap_pvs.stereo.local as local_module
 
     real, written = stereo_geometric._check_photometric, {}
     threads_before = torch.get_num_threads()
@@ -1515,7 +1514,7 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
                 threads.add(threading.current_thread().name.rsplit("_", 1)[0])
                 return real(ctx, name, setup, kept)
 
-            monkeypatch.setattr(local_module, "REFERENCE_THREADS", workers)
+            monkeypatch.setattr(stereo_context, "REFERENCE_THREADS", workers)
             monkeypatch.setattr(stereo_geometric, "_check_photometric", counting)
             run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
                                      max_image_size=64, min_confidence=0, threads=2))

@@ -34,7 +34,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # the package root (``__version__``), errors, plain data types, the stdlib-only atomic file
     # writes every layer uses, the shipped weights
     ("base", ("colmap_pvs", "colmap_pvs.errors", "colmap_pvs.types", "colmap_pvs.io.files",
-              "colmap_pvs.weights")),
+              "colmap_pvs.weights", "colmap_pvs.openmp")),
     ("config", ("colmap_pvs.config",)),
     # COLMAP's files (pycolmap) and the numpy core that works on maps (confidence: its calibration)
     ("io and numeric core", ("colmap_pvs.io", "colmap_pvs.geometry", "colmap_pvs.upsampling",

@@ -221,6 +221,22 @@ class ImageCache:
         return self.future(name, max_image_size, size).result()
 
 
+#: References whose geometric or completion pass runs at once, in threads: their numpy work releases the
+#: GIL in its array loops, so two keep two cores busy. The confirmation stays one at a time (it rewrites
+#: the geometric maps that the other references' confirmations read).
+REFERENCE_THREADS = 2
+
+
+def reference_threads(config: StereoConfig, stage: Stage) -> int:
+    """How many references ``stage`` runs at once: :data:`REFERENCE_THREADS` for the geometric pass
+    (unless it runs the network again, ``geom_reestimate``) and the completion, at most torch's thread
+    count (``--threads``); 1 for the others."""
+    if stage not in ("geometric", "filled") or (stage == "geometric" and config.geometric.reestimate):
+        return 1
+    return max(1, min(REFERENCE_THREADS, torch.get_num_threads()))
+
+
+
 # --------------------------------------------------------------------------- context
 
 

@@ -10,7 +10,6 @@ import logging
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import torch
 from tqdm import tqdm
 
 from ..config import config_json_bytes
@@ -21,7 +20,14 @@ from ..io.workspace import write_fusion_cfg
 from ..model import stored_config
 from .config import CONFIG_FILENAME, Stage, StereoConfig
 from .confirm import confirm_pass
-from .context import RefOutcome, StereoContext, StereoResult, patch_match_note, prepare_stereo
+from .context import (
+    RefOutcome,
+    StereoContext,
+    StereoResult,
+    patch_match_note,
+    prepare_stereo,
+    reference_threads,
+)
 from .filled import filled_pass
 from .geometric import geometric_pass
 from .outputs import pass_summary, remove_filled
@@ -62,21 +68,6 @@ def auxiliary_references(ctx: StereoContext) -> list[str]:
             if s not in refs:
                 extra[s] = None
     return sorted(extra)
-
-
-#: References whose geometric or completion pass runs at once, in threads: their numpy work releases the
-#: GIL in its array loops, so two keep two cores busy. The confirmation stays one at a time (it rewrites
-#: the geometric maps that the other references' confirmations read).
-REFERENCE_THREADS = 2
-
-
-def reference_threads(config: StereoConfig, stage: Stage) -> int:
-    """How many references ``stage`` runs at once: :data:`REFERENCE_THREADS` for the geometric pass
-    (unless it runs the network again, ``geom_reestimate``) and the completion, at most torch's thread
-    count (``--threads``); 1 for the others."""
-    if stage not in ("geometric", "filled") or (stage == "geometric" and config.geometric.reestimate):
-        return 1
-    return max(1, min(REFERENCE_THREADS, torch.get_num_threads()))
 
 
 _PASS_LABELS = {"geometric": ("stereo (geometric)", "geometric pass"),
