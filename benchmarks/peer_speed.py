@@ -15,7 +15,8 @@ checked against them (:func:`plan_mismatches`; a difference is printed as a warn
 
 Each side is one fresh subprocess, timed from this process: wall time, CPU time (user + sys) and peak
 RSS of the child (``os.wait4``); the 1-minute load average is read before each run. The order is
-ours (each ``--ours`` in turn), IterMVS, repeated ``--repeats`` times. What each side includes:
+ours (each ``--ours`` in turn), IterMVS (then IterMVS with its filtering), repeated ``--repeats``
+times. What each side includes:
 
 - ours: ``colmap-pvs stereo --workspace_path W --max_image_size 540 --num_views 5 --threads 2`` (the
   ``colmap-pvs`` script next to each ``--ours`` python, else ``python -m colmap_pvs.cli``) on a fresh
@@ -32,6 +33,10 @@ ours (each ``--ours`` in turn), IterMVS, repeated ``--repeats`` times. What each
   the references' and sources' images (each once), one forward per reference at IterMVS's own
   multiple-of-32 size with ``--threads`` torch threads, and its depth and its own confidence at the map
   size written per reference as COLMAP ``.bin`` files. No filtering, no geometric check, no fusion.
+- IterMVS with its own filtering (``--filter``, side ``itermvs+filter``): the same, plus the maps of the
+  auxiliary sources (each with the sources and depth range our view selection gives it), then
+  ``eval.py``'s filtering and fusion as its ``eval_custom.sh`` runs it (:func:`itermvs_filter`): what
+  IterMVS's own whole process does to make its cloud, and the closest to our command's work.
 
 The table lists every run; the summary gives each side's medians and, per ``--ours``, the median over
 the repeats of the paired ratio ours / IterMVS (the IterMVS run right after it). ``--json`` writes it
@@ -61,6 +66,9 @@ import teacher_labels as tl  # noqa: E402  (IterMVS with our cameras: Teacher)
 CLI_FLAGS = ("max_image_size", "num_views", "threads")
 #: The 1-minute load average from which the summary says the machine was not quiet.
 QUIET_LOAD = 0.5
+#: ``eval_custom.sh``'s IterMVS filter: confidence above this, and this many sources agreeing.
+ITERMVS_PHOTO_THRES = 0.3
+ITERMVS_GEO_MASK_THRES = 3
 #: Depth ranges are recorded to 9 significant digits in the provenance.
 RANGE_RTOL = 1e-8
 
@@ -69,8 +77,9 @@ RANGE_RTOL = 1e-8
 
 
 def plan_views(fields: dict) -> dict[str, dict]:
-    """``{"references": {name: {"sources", "depth_range"}}, "views": {name: {"size", "K", "pose"}}}``:
-    each reference's sources and depth range as our stereo step decides them for the
+    """``{"references": {name: {"sources", "depth_range"}}, "auxiliary": {...}, "views": {name: {"size", "K",
+    "pose"}}}``: each reference's (and auxiliary source's) sources and depth range as our stereo step decides
+    them for the
     :class:`~colmap_pvs.stereo.StereoConfig` ``fields`` (the flags of our run; its own
     :func:`~colmap_pvs.stereo.context.prepare_stereo`: ``patch-match.cfg``, view selection, depth
     ranges), and each reference's and source's map size ``[W, H]``, map intrinsics and
@@ -79,23 +88,26 @@ def plan_views(fields: dict) -> dict[str, dict]:
     from colmap_pvs.geometry import to_homogeneous
     from colmap_pvs.stereo import StereoConfig
     from colmap_pvs.stereo.context import prepare_stereo
+    from colmap_pvs.stereo.local import auxiliary_references
 
     ctx = prepare_stereo(config_from_dict(StereoConfig, {**fields, "device": "cpu"}))
     try:
-        refs, views = {}, {}
-        for name in ctx.references:
-            sources, reason = ctx.sources_of(name)
-            if sources is None:
-                raise SystemExit(f"reference {name}: our stereo step skips it ({reason})")
-            dmin, dmax = ctx.selection.references[name].depth_range
-            refs[name] = {"sources": list(sources), "depth_range": [float(dmin), float(dmax)]}
-            for n in [name, *sources]:
-                size = ctx.map_size(n)
-                views[n] = {"size": list(size), "K": ctx.map_K(n, size).tolist(),
-                            "pose": to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world).tolist()}
+        planned: dict[str, dict] = {"references": {}, "auxiliary": {}}
+        views = {}
+        for kind, names in (("references", list(ctx.references)), ("auxiliary", auxiliary_references(ctx))):
+            for name in names:
+                sources, reason = ctx.sources_of(name)
+                if sources is None:
+                    raise SystemExit(f"{name}: our stereo step skips it ({reason})")
+                dmin, dmax = ctx.selection.references[name].depth_range
+                planned[kind][name] = {"sources": list(sources), "depth_range": [float(dmin), float(dmax)]}
+                for n in [name, *sources]:
+                    size = ctx.map_size(n)
+                    views[n] = {"size": list(size), "K": ctx.map_K(n, size).tolist(),
+                                "pose": to_homogeneous(ctx.sparse.image_by_name(n).cam_from_world).tolist()}
     finally:
         ctx.close()
-    return {"references": refs, "views": views}
+    return {**planned, "views": views}
 
 
 def recorded_views(ws: Path, refs) -> dict[str, dict]:
@@ -157,27 +169,29 @@ def parse_ours(items: list[str]) -> list[tuple[str, str]]:
     return out
 
 
-def summary(runs: list[dict], labels: list[str]) -> list[str]:
-    """Each side's medians and, per label, the median paired ratio ours / IterMVS (same repeat)."""
+def summary(runs: list[dict], labels: list[str], peers: tuple[str, ...] = ("itermvs",)) -> list[str]:
+    """Each side's medians and, per label and peer side, the median paired ratio ours / peer (same repeat)."""
     lines = ["", "| side | runs | median wall s | median CPU s | median peak RSS MB |",
              "|---|---|---|---|---|"]
-    for side in [*labels, "itermvs"]:
+    for side in [*labels, *peers]:
         mine = [r for r in runs if r["side"] == side]
         if mine:
             lines.append(f"| {side} | {len(mine)} | {statistics.median(r['wall_s'] for r in mine):.1f} | "
                          f"{statistics.median(r['cpu_s'] for r in mine):.1f} | "
                          f"{statistics.median(r['peak_rss_mb'] for r in mine):.0f} |")
-    peer = {r["repeat"]: r for r in runs if r["side"] == "itermvs"}
     lines.append("")
-    for label in labels:
-        pairs = [(r, peer[r["repeat"]]) for r in runs if r["side"] == label and r["repeat"] in peer]
-        if not pairs:
-            continue
-        ratio = {k: statistics.median(a[k] / b[k] for a, b in pairs)
-                 for k in ("wall_s", "cpu_s", "peak_rss_mb")}
-        lines.append(f"{label} / IterMVS, median of {len(pairs)} paired ratio(s): "
-                     f"wall {ratio['wall_s']:.2f}x, CPU {ratio['cpu_s']:.2f}x, "
-                     f"peak RSS {ratio['peak_rss_mb']:.2f}x")
+    for side in peers:
+        peer = {r["repeat"]: r for r in runs if r["side"] == side}
+        for label in labels:
+            pairs = [(r, peer[r["repeat"]]) for r in runs if r["side"] == label and r["repeat"] in peer]
+            if not pairs:
+                continue
+            ratio = {k: statistics.median(a[k] / b[k] for a, b in pairs)
+                     for k in ("wall_s", "cpu_s", "peak_rss_mb")}
+            name = "IterMVS" if side == "itermvs" else side
+            lines.append(f"{label} / {name}, median of {len(pairs)} paired ratio(s): "
+                         f"wall {ratio['wall_s']:.2f}x, CPU {ratio['cpu_s']:.2f}x, "
+                         f"peak RSS {ratio['peak_rss_mb']:.2f}x")
     return lines
 
 
@@ -206,7 +220,9 @@ def itermvs_child(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     forward = 0.0
-    for name, ref in plan["references"].items():
+    todo = {**plan["references"], **(plan["auxiliary"] if args.filter else {})}
+    maps = {}
+    for name, ref in todo.items():
         names = [name, *ref["sources"]]
         pixels = [image(n) for n in names]
         start = time.perf_counter()
@@ -215,8 +231,56 @@ def itermvs_child(args: argparse.Namespace) -> int:
         forward += time.perf_counter() - start
         write_depth_map(out / "depth_maps" / f"{name}.itermvs.bin", depth)
         write_depth_map(out / "confidence_maps" / f"{name}.itermvs.bin", conf)
-    print(f"itermvs: {len(plan['references'])} references, forward {forward:.1f} s in all", flush=True)
+        maps[name] = (depth, conf)
+    print(f"itermvs: {len(todo)} maps, forward {forward:.1f} s in all", flush=True)
+    if args.filter:
+        itermvs_filter(args.itermvs, plan, maps, image, out / "fused.ply")
     return 0
+
+
+def itermvs_filter(clone: Path, plan: dict, maps: dict, image, path: Path) -> None:
+    """IterMVS's own filtering and fusion of ``maps`` (``name -> (depth, confidence)``), as its ``eval.py``
+    does for a custom scene (``eval_custom.sh``'s thresholds): per reference, its confidence above 0.3 and
+    3 of its sources agreeing by its ``check_geometric_consistency`` (1 px, 1 % depth), the agreeing depths
+    averaged, every kept pixel a world point; the cloud written to ``path`` (our PLY writer: faster than
+    ``eval.py``'s, so IterMVS's side is if anything short). Its two functions are read from the clone's
+    ``eval.py`` (which parses arguments and needs ``plyfile`` when imported)."""
+    import ast
+
+    import cv2
+    import numpy as np
+
+    from colmap_pvs.io.ply import write_point_cloud
+
+    source = (clone / "eval.py").read_text()
+    wanted = {"reproject_with_depth", "check_geometric_consistency"}
+    body = [node for node in ast.parse(source).body
+            if isinstance(node, ast.FunctionDef) and node.name in wanted]
+    functions = {"np": np, "cv2": cv2}
+    exec(compile(ast.Module(body, type_ignores=[]), str(clone / "eval.py"), "exec"), functions)  # noqa: S102
+    check = functions["check_geometric_consistency"]
+    views = plan["views"]
+    points, colours = [], []
+    for name, ref in plan["references"].items():
+        depth, conf = maps[name]
+        K, pose = np.asarray(views[name]["K"]), np.asarray(views[name]["pose"])
+        agree = np.zeros(depth.shape, np.int32)
+        reprojected = []
+        for src in ref["sources"]:
+            if src not in maps:
+                continue
+            mask, depth_src, _, _ = check(depth, K, pose, maps[src][0], np.asarray(views[src]["K"]),
+                                          np.asarray(views[src]["pose"]), 1.0, 0.01)
+            agree += mask.astype(np.int32)
+            reprojected.append(depth_src)
+        averaged = (sum(reprojected) + depth) / (agree + 1)
+        keep = (conf > ITERMVS_PHOTO_THRES) & (agree >= ITERMVS_GEO_MASK_THRES)
+        rows, cols = np.nonzero(keep)
+        cam = np.linalg.inv(K) @ (np.stack([cols, rows, np.ones_like(cols)]) * averaged[keep])
+        points.append((np.linalg.inv(pose) @ np.vstack([cam, np.ones_like(cols)]))[:3].T)
+        colours.append((image(name)[keep] * (255 if image(name).dtype != np.uint8 else 1)).astype(np.uint8))
+    write_point_cloud(path, np.concatenate(points), colors=np.concatenate(colours))
+    print(f"itermvs: filtered and fused {sum(len(c) for c in points)} points into {path}", flush=True)
 
 
 # --------------------------------------------------------------------------- timing
@@ -264,6 +328,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max_image_size", type=int, default=540)
     p.add_argument("--num_views", type=int, default=5)
     p.add_argument("--threads", type=int, default=2, help="torch threads of both sides")
+    p.add_argument("--filter", action="store_true",
+                   help="also IterMVS with its own filtering and fusion (itermvs+filter): the maps of the "
+                        "auxiliary sources too, then eval.py's geometric check, and a cloud")
     p.add_argument("--json", type=Path, default=None, help="also write the plan and every run here")
     p.add_argument("--child", choices=["itermvs"], help=argparse.SUPPRESS)
     p.add_argument("--plan", help=argparse.SUPPRESS)
@@ -311,17 +378,18 @@ def main(argv: list[str] | None = None) -> int:
     print("", "| # | side | wall s | CPU s | peak RSS MB | load before (1 min) |",
           "|---|---|---|---|---|---|", sep="\n", flush=True)
     for repeat in range(args.repeats):
-        for label, python in [*ours, ("itermvs", sys.executable)]:
+        peers = [("itermvs", sys.executable)] + ([("itermvs+filter", sys.executable)] if args.filter else [])
+        for label, python in [*ours, *peers]:
             run_dir = base / label
             if run_dir.exists():
                 shutil.rmtree(run_dir)
             run_dir.mkdir(parents=True)
             log = base / f"{label}.log"
-            if label == "itermvs":
+            if label.startswith("itermvs"):
                 cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "itermvs",
                        "--plan", str(base / "sources.json"), "--out", str(run_dir),
                        "--itermvs", str(args.itermvs.resolve()), "--teacher", args.teacher,
-                       "--threads", str(args.threads)]
+                       "--threads", str(args.threads), *(["--filter"] if label == "itermvs+filter" else [])]
             else:
                 ws = fresh(run_dir / "ws")
                 cmd = stereo_command(python, ws, {**fields, "workspace_path": str(ws)})
@@ -329,13 +397,13 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(run)
             if failed(run, log):
                 return 1
-            if label != "itermvs":
+            if not label.startswith("itermvs"):
                 for line in plan_mismatches(plan, run_dir / "ws"):
                     print(f"WARNING {label}: {line}", file=sys.stderr)
             row = (f"| {len(runs)} | {label} | {run['wall_s']:.1f} | {run['cpu_s']:.1f} | "
                    f"{run['peak_rss_mb']:.0f} | {run['load_before'][0]:.2f} |")
             print(row, flush=True)
-    lines = summary(runs, [label for label, _ in ours])
+    lines = summary(runs, [label for label, _ in ours], tuple(label for label, _ in peers))
     busiest = max(r["load_before"][0] for r in runs)
     if busiest >= QUIET_LOAD:
         lines.append(f"not a quiet machine: a 1-minute load average of {busiest:.2f} before a run "

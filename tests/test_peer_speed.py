@@ -58,7 +58,11 @@ def test_summary_takes_the_median_of_paired_ratios():
     text = "\n".join(ps.summary(runs, ["ours"]))
     assert "| ours | 3 | 9.0 | 9.0 | 100 |" in text and "| itermvs | 3 | 12.0 |" in text
     # the median of 0.8, 1.5 and 0.75, not the ratio of the medians (9 / 12)
-    assert "median of 3 paired ratio(s): wall 0.80x, CPU 0.80x, peak RSS 1.00x" in text
+    assert "ours / IterMVS, median of 3 paired ratio(s): wall 0.80x, CPU 0.80x, peak RSS 1.00x" in text
+    runs += [run(0, "itermvs+filter", 16.0), run(1, "itermvs+filter", 20.0)]  # each peer its own pairs
+    text = "\n".join(ps.summary(runs, ["ours"], ("itermvs", "itermvs+filter")))
+    assert "ours / IterMVS, median of 3 paired ratio(s): wall 0.80x" in text
+    assert "ours / itermvs+filter, median of 2 paired ratio(s): wall 1.00x" in text  # 0.5 and 1.5
 
 
 def test_ours_pairs(tmp_path):
