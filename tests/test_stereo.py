@@ -1525,3 +1525,23 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
         torch.set_num_threads(threads_before)
     assert written[1].keys() == written[2].keys() and len(written[1]) >= 4 * 7
     assert [p for p in written[1] if written[1][p] != written[2][p]] == []
+
+
+def test_references_run_at_once_only_in_the_passes_and_sizes_that_allow_it(monkeypatch):
+    """Two references at once in the geometric pass and the completion, never in the photometric pass
+    or the confirmation, never with a network inside the geometric pass, never beyond torch's threads
+    or above ``REFERENCE_THREADS_MAX_PIXELS`` (or at full image size)."""
+    import torch
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    ref_threads = stereo_context.reference_threads
+    config = stereo_config_module.StereoConfig(workspace_path="w")
+    assert [ref_threads(config, s) for s in ("photometric", "geometric", "filled", "confirm")] == [1, 2, 2, 1]
+    reestimate = dataclasses.replace(config, geometric=dataclasses.replace(config.geometric, reestimate=True))
+    assert [ref_threads(reestimate, s) for s in ("geometric", "filled")] == [1, 2]
+    for size, expected in ((1024, 2), (1025, 1), (0, 1), (-1, 1)):
+        sized = dataclasses.replace(config, photometric=dataclasses.replace(config.photometric,
+                                                                             max_image_size=size))
+        assert ref_threads(sized, "geometric") == expected, size
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    assert ref_threads(config, "geometric") == 1

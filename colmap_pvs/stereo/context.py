@@ -225,16 +225,20 @@ class ImageCache:
 #: GIL in its array loops, so two keep two cores busy. The confirmation stays one at a time (it rewrites
 #: the geometric maps that the other references' confirmations read).
 REFERENCE_THREADS = 2
+#: Above this map size (``max_image_size`` squared, pixels) one reference at a time: a second one holds
+#: its own checks' arrays (several times the map's size per source), which large maps cannot afford.
+REFERENCE_THREADS_MAX_PIXELS = 1024 * 1024
 
 
 def reference_threads(config: StereoConfig, stage: Stage) -> int:
     """How many references ``stage`` runs at once: :data:`REFERENCE_THREADS` for the geometric pass
     (unless it runs the network again, ``geom_reestimate``) and the completion, at most torch's thread
-    count (``--threads``); 1 for the others."""
-    if stage not in ("geometric", "filled") or (stage == "geometric" and config.geometric.reestimate):
+    count (``--threads``), for maps up to :data:`REFERENCE_THREADS_MAX_PIXELS`; 1 otherwise."""
+    size = config.photometric.max_image_size
+    if (stage not in ("geometric", "filled") or (stage == "geometric" and config.geometric.reestimate)
+            or size <= 0 or size * size > REFERENCE_THREADS_MAX_PIXELS):
         return 1
     return max(1, min(REFERENCE_THREADS, torch.get_num_threads()))
-
 
 
 # --------------------------------------------------------------------------- context
