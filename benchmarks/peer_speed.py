@@ -338,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.child:
         return itermvs_child(args)
+    if args.repeats < 1:
+        p.error(f"--repeats must be at least 1, got {args.repeats}")
     if args.itermvs is None or not (args.itermvs / tl.TEACHER_KINDS[args.teacher].weights).is_file():
         weights = tl.TEACHER_KINDS[args.teacher].weights
         p.error(f"--itermvs: no clone of IterMVS with {weights} at {args.itermvs}")

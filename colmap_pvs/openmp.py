@@ -7,18 +7,25 @@ work the threads wait for each other's cores and a run becomes several times slo
 machine. GNU OpenMP's ``GOMP_SPINCOUNT`` spins a little, then sleeps: close to the faster of the two in
 either case (benchmarks/RESULTS.md). Other OpenMP runtimes read the policy alone.
 
-Both must be set before torch is imported; the library itself never sets them.
+Both must be set before torch is imported; the library itself never sets them in its own process (it
+passes :func:`wait_env` to the Ray workers it starts).
 """
 
 from __future__ import annotations
 
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 
 #: The environment of a process that runs torch for colmap-pvs.
 WAIT_ENV = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "1000"}
 
 
+def wait_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """How OpenMP should wait, given ``environ``: the user's own setting of either variable where it has
+    one, else :data:`WAIT_ENV`."""
+    own = {key: environ[key] for key in WAIT_ENV if key in environ}
+    return own or dict(WAIT_ENV)
+
+
 def set_wait_env(environ: MutableMapping[str, str]) -> None:
     """Set :data:`WAIT_ENV` in ``environ`` unless it already says how OpenMP waits (either variable)."""
-    if not any(key in environ for key in WAIT_ENV):
-        environ.update(WAIT_ENV)
+    environ.update(wait_env(environ))

@@ -174,8 +174,21 @@ def test_the_command_line_sets_how_openmp_waits_unless_the_user_did(preset, expe
     import sys
 
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    code = ("import json, os, sys; import colmap_pvs.cli.main; "
-            "print(json.dumps({k: os.environ.get(k) for k in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')}))")
+    code = ("import json, os, sys; import colmap_pvs.openmp as o; real, torch_before = o.set_wait_env, []; "
+            "o.set_wait_env = lambda e: (torch_before.append('torch' in sys.modules), real(e)); "
+            "import colmap_pvs.cli.main; "
+            "print(json.dumps({k: os.environ.get(k) for k in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')})); "
+            "print(json.dumps(torch_before))")
     out = subprocess.run([sys.executable, "-c", code], env={**env, **preset}, capture_output=True, text=True,
-                         check=True).stdout
-    assert json.loads(out.splitlines()[-1]) == expected
+                         check=True).stdout.splitlines()
+    assert json.loads(out[-2]) == expected
+    assert json.loads(out[-1]) == [False]  # set once, before torch was imported
+
+
+def test_ray_workers_wait_as_the_command_line_or_as_the_user_said():
+    """Ray's workers get :func:`colmap_pvs.openmp.wait_env`: the user's own setting where there is one."""
+    from colmap_pvs.openmp import WAIT_ENV, wait_env
+
+    assert wait_env({"HOME": "/h"}) == WAIT_ENV and wait_env({}) is not WAIT_ENV
+    assert wait_env({"OMP_WAIT_POLICY": "ACTIVE", "HOME": "/h"}) == {"OMP_WAIT_POLICY": "ACTIVE"}
+    assert wait_env({"GOMP_SPINCOUNT": "5"}) == {"GOMP_SPINCOUNT": "5"}

@@ -1517,14 +1517,19 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
             monkeypatch.setattr(stereo_context, "REFERENCE_THREADS", workers)
             monkeypatch.setattr(stereo_geometric, "_check_photometric", counting)
             run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3,
-                                     max_image_size=64, min_confidence=0, threads=2))
+                                     max_image_size=64, min_confidence=0, threads=2, previews=True))
+            # (whether two checks of one image would overlap without the lock is a race: it did in 3 of 3
+            # runs here with the lock removed)
             assert len(checks) == 4 and set(checks.values()) == {1}, (workers, checks)
             assert threads == ({"MainThread"} if workers == 1 else {"stereo-geometric"}), threads
-            written[workers] = {p.relative_to(ws): p.read_bytes() for p in (ws / "stereo").rglob("*.bin")}
+            written[workers] = {p.relative_to(ws): p.read_bytes() for p in (ws / "stereo").rglob("*")
+                                if p.is_file()}
     finally:
         torch.set_num_threads(threads_before)
     assert written[1].keys() == written[2].keys() and len(written[1]) >= 4 * 7
-    assert [p for p in written[1] if written[1][p] != written[2][p]] == []
+    # every file: maps, previews, provenance, fusion.cfg; but the run's config, which names the workspace
+    differ = [p for p in written[1] if written[1][p] != written[2][p]]
+    assert differ == [Path("stereo/colmap_pvs_stereo.json")]
 
 
 def test_references_run_at_once_only_in_the_passes_and_sizes_that_allow_it(monkeypatch):
@@ -1545,3 +1550,38 @@ def test_references_run_at_once_only_in_the_passes_and_sizes_that_allow_it(monke
         assert ref_threads(sized, "geometric") == expected, size
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     assert ref_threads(config, "geometric") == 1
+
+
+def test_a_failing_reference_stops_the_pass_and_the_queued_ones_never_start(synthetic_ws, tmp_path,
+                                                                             tiny_checkpoint, monkeypatch):
+    """An error in one reference of a pass run in threads is raised, and the references still queued are
+    cancelled, not run."""
+    import time
+
+    import colmap_pvs.stereo.local as local_module
+
+    ws = _copy(synthetic_ws, tmp_path)
+    run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=48,
+                             geom_consistency=False))
+    ctx = stereo_context.prepare_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint,
+                                                      num_views=3, max_image_size=48, threads=2))
+    names, started, never = list(ctx.references), [], threading.Event()
+
+    def fake(ctx, name, stage):
+        started.append(name)
+        if name == names[0]:
+            time.sleep(0.2)
+            raise RuntimeError(f"broken {name}")
+        never.wait(1.0)  # busy while the first one fails
+        return stereo_context.RefOutcome(name, stage, "computed")
+
+    monkeypatch.setattr(local_module, "process_reference", fake)
+    result = stereo_context.StereoResult(workspace=ctx.workspace)
+    try:
+        with pytest.raises(RuntimeError, match=f"broken {names[0]}"):
+            local_module._run_later_pass(ctx, names, "geometric", result, [], set())
+    finally:
+        ctx.close()
+    # the first two start at once; the failed one's thread may take the third before the pass cancels
+    # the queue, never the fourth
+    assert len(names) == 4 and set(names[:2]) <= set(started) and names[3] not in started

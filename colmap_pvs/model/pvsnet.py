@@ -529,7 +529,7 @@ class PVSNet(nn.Module):
         # The reference side of the correlation, weighted and scaled once per source.
         ref = correlation_reference(feats[:, 0], G, pixel_weight)
         step = plane_chunk(B * C * h * w * feats.element_size(), D)
-        threads = torch.get_num_threads() if feats.device.type == "cpu" else 1
+        threads = torch.get_num_threads() if feats.device.type == "cpu" and not exporting() else 1
         for d0 in range(0, D, step):
             d1 = min(D, d0 + step)
             grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)

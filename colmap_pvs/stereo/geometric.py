@@ -178,7 +178,9 @@ def _check_kwargs(ctx: StereoContext) -> dict:
     cfg = ctx.config.geometric
     return {"max_reproj_error": cfg.max_reproj_error, "max_depth_error": cfg.max_depth_error,
             "min_visibility": cfg.min_visibility,
-            "workers": max(1, torch.get_num_threads())}  # the sources in threads, as many as torch's
+            # the sources in threads, as many as torch's: with two references at once (REFERENCE_THREADS)
+            # twice the cores, on purpose (a thread waiting for memory leaves its core to another)
+            "workers": max(1, torch.get_num_threads())}
 
 
 def _load_check(ctx: StereoContext, name: str, setup: CheckSetup):
@@ -209,7 +211,7 @@ class Checked:
     confidence ``[H, W]`` (0 where dropped) before the sources' seeds are added, ``reestimated`` when
     they are the check of a re-estimate. Cached in ``ctx.seed_cache`` for other references' passes,
     with the depth and confidence when another reference's geometric pass made it in this run, for its
-    own pass to reuse (``None`` for seeds read from disk or after its own pass)."""
+    own pass to reuse (``None`` for seeds read from disk or once its own pass has checked it)."""
 
     seeds: np.ndarray
     depth: np.ndarray | None = None

@@ -91,16 +91,16 @@ def _run_later_pass(ctx: StereoContext, names: list[str], stage: Stage, result: 
     with ThreadPoolExecutor(workers, thread_name_prefix=f"stereo-{stage}") as pool:
         run = pool.map(lambda name: process_reference(ctx, name, stage), todo) if workers > 1 else (
             process_reference(ctx, name, stage) for name in todo)
-        outs = list(tqdm(run, total=len(todo), desc=desc, unit="image"))
-    for name, out in zip(todo, outs, strict=True):
-        outcomes.append(out)
-        if out.status == "done":
-            done.append(name)
-        elif out.status == "skipped":
-            logger.warning("%s: skipping %s: %s", label, name, out.reason)
-            skipped[name] = out.reason
-        else:
-            processed.append(name)
+        # in the references' order, as each is done; an error stops the pass (map cancels what is queued)
+        for name, out in zip(todo, tqdm(run, total=len(todo), desc=desc, unit="image"), strict=True):
+            outcomes.append(out)
+            if out.status == "done":
+                done.append(name)
+            elif out.status == "skipped":
+                logger.warning("%s: skipping %s: %s", label, name, out.reason)
+                skipped[name] = out.reason
+            else:
+                processed.append(name)
     ctx.flush()
     result.pass_seconds[stage] = timer.elapsed()
     logger.info("stereo %s", pass_summary(stage, outcomes))

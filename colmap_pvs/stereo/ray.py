@@ -47,7 +47,7 @@ from ..io.cleanup import remove_orphan_temps
 from ..io.files import atomic_write_bytes
 from ..io.workspace import Workspace, write_fusion_cfg
 from ..model import stored_config
-from ..openmp import WAIT_ENV
+from ..openmp import wait_env
 from ..views import reference_sources
 from .config import CONFIG_FILENAME, StereoConfig
 from .context import RefOutcome, StereoResult, patch_match_note, prepare_stereo
@@ -323,7 +323,7 @@ class _Driver:
         self._check_fits(memory, joined)
         self.actor_cls = ray.remote(StereoWorker).options(
             num_cpus=config.ray.worker_threads, memory=memory or None, max_restarts=0, max_task_retries=0,
-            runtime_env={"env_vars": dict(WAIT_ENV)},
+            runtime_env={"env_vars": wait_env(os.environ)},
         )
         self.deaths_left = self.num_workers * (config.ray.max_retries + 1)
         self.actors: list = []
