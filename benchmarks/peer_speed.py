@@ -348,12 +348,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hololens-dev data not found at {args.data}", file=sys.stderr)
         return 2
 
-    from colmap_pvs.io.sparse import read_sparse_model
-
     work = args.work_dir.resolve()
-    sparse = real_depth.build_model(args.data, work, args.threads)
-    names = sorted(read_sparse_model(sparse).image_ids_by_name)
-    refs = names[args.first : args.first + args.count]
+    sparse, refs = real_depth.consecutive_references(args.data, work, args.threads, args.first, args.count)
     base = work / "ws" / "peer_speed"
     cfg_text = "".join(f"{r}\n__auto__, {args.num_views - 1}\n" for r in refs)
 

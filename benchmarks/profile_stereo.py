@@ -48,13 +48,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     from colmap_pvs.config import config_from_dict
-    from colmap_pvs.io.sparse import read_sparse_model
     from colmap_pvs.stereo import StereoConfig, run_stereo
 
     work = args.work_dir.resolve()
-    sparse = real_depth.build_model(args.data, work, args.threads)
-    names = sorted(read_sparse_model(sparse).image_ids_by_name)
-    refs = names[args.first : args.first + args.count]
+    sparse, refs = real_depth.consecutive_references(args.data, work, args.threads, args.first, args.count)
     ws = work / "ws" / "profile"
     if ws.exists():
         shutil.rmtree(ws)

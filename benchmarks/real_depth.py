@@ -146,6 +146,17 @@ def build_model(data: Path, work: Path, threads: int) -> Path:
     return model_dir
 
 
+def consecutive_references(data: Path, work: Path, threads: int, first: int,
+                           count: int) -> tuple[Path, list[str]]:
+    """The cached model of :func:`build_model` and ``count`` consecutive image names from index ``first``
+    (the frames of ``profile_stereo.py`` and ``peer_speed.py``)."""
+    from colmap_pvs.io.sparse import read_sparse_model
+
+    sparse = build_model(data, work, threads)
+    names = sorted(read_sparse_model(sparse).image_ids_by_name)
+    return sparse, names[first : first + count]
+
+
 def add_frame_args(p: argparse.ArgumentParser, stride: int) -> None:
     """The data, work folder, frames (``--stride``, ``--offset``, ``--frames``), ``--num_views`` and
     ``--threads`` arguments that :func:`quick_model` and :func:`quick_sources` read."""
