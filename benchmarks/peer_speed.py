@@ -200,7 +200,7 @@ def summary(runs: list[dict], labels: list[str], peers: tuple[str, ...] = ("iter
 
 def itermvs_child(args: argparse.Namespace) -> int:
     """IterMVS's whole process on the plan ``args.plan``: depth and confidence per reference in
-    ``args.out``."""
+    ``args.out`` (with ``--filter`` also per auxiliary source, then :func:`itermvs_filter`'s cloud)."""
     import cv2
     import numpy as np
     import torch
@@ -278,7 +278,7 @@ def itermvs_filter(clone: Path, plan: dict, maps: dict, image, path: Path) -> No
         rows, cols = np.nonzero(keep)
         cam = np.linalg.inv(K) @ (np.stack([cols, rows, np.ones_like(cols)]) * averaged[keep])
         points.append((np.linalg.inv(pose) @ np.vstack([cam, np.ones_like(cols)]))[:3].T)
-        colours.append((image(name)[keep] * (255 if image(name).dtype != np.uint8 else 1)).astype(np.uint8))
+        colours.append(image(name)[keep])  # uint8 RGB (colmap_pvs.io.images.load_image)
     write_point_cloud(path, np.concatenate(points), colors=np.concatenate(colours))
     print(f"itermvs: filtered and fused {sum(len(c) for c in points)} points into {path}", flush=True)
 

@@ -535,19 +535,16 @@ class PVSNet(nn.Module):
             grid = grid_from_rays(rays, b, depths[:, d0:d1], h, w)
             parts = _sampling_parts(B, d1 - d0, threads)
             if parts == 1:
-                warped = warp_features(feats[:, src], grid, d1 - d0)
-                del grid
-                correlate_into(ref, warped, out[:, :, d0:d1], accumulate=accumulate is not None)
+                pieces = [(d0, warp_features(feats[:, src], grid, d1 - d0))]
+            else:  # [parts, C, (d1 - d0) / parts, h, w]: entry j is the j-th run of planes
+                warped = warp_features_parts(feats[:, src], grid, d1 - d0, parts)
+                pieces = [(d0 + j * warped.shape[2], warped[j : j + 1]) for j in range(parts)]
                 del warped
-                continue
-            warped = warp_features_parts(feats[:, src], grid, d1 - d0, parts)
             del grid
-            per = (d1 - d0) // parts
-            for j in range(parts):
-                lo = d0 + j * per
-                correlate_into(ref, warped[j : j + 1], out[:, :, lo : lo + per],
+            for lo, piece in pieces:
+                correlate_into(ref, piece, out[:, :, lo : lo + piece.shape[2]],
                                accumulate=accumulate is not None)
-            del warped
+            del pieces
         return out
 
     def _stage_weights(
