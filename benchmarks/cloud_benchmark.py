@@ -194,9 +194,10 @@ def gt_views(model, refs: list[str], gt_dir: Path) -> list[GTView]:
     return out
 
 
-def run_fusion(kind: str, ws: Path, colmap: str, fuse_overrides: dict | None = None) -> tuple[Path, float]:
-    """Fuse ``ws`` the ``kind`` way into ``ws/cloud_KIND.ply``; ``(path, seconds)``."""
-    out = ws / f"cloud_{kind}.ply"
+def run_fusion(kind: str, ws: Path, colmap: str, fuse_overrides: dict | None = None,
+               out: Path | None = None) -> tuple[Path, float]:
+    """Fuse ``ws`` the ``kind`` way into ``out`` (default ``ws/cloud_KIND.ply``); ``(path, seconds)``."""
+    out = out or ws / f"cloud_{kind}.ply"
     start = time.perf_counter()
     if kind == "colmap":
         cmd = [colmap, "stereo_fusion", "--workspace_path", str(ws), "--workspace_format", "COLMAP",
@@ -244,15 +245,17 @@ def confidence_curve(ws: Path, colmap: str, levels: list[float], fuse_overrides:
                      views: list[GTView], behind: float) -> list[dict]:
     """The accuracy / completeness curve of ``fuse`` along ``--min_confidence``: one cloud per level."""
     rows = []
+    path = ws / "cloud_pvs_min_confidence.ply"  # one level's cloud at a time, beside the default's
     for level in levels:
-        path, fuse_s = run_fusion("pvs", ws, colmap, {**fuse_overrides, "min_confidence": level})
+        path, fuse_s = run_fusion("pvs", ws, colmap, {**fuse_overrides, "min_confidence": level}, path)
         score = frustum_cloud_score(read_points(path), gt_points, views, THRESHOLDS, 0.01, behind)
         score.update(min_confidence=level, fusion_seconds=fuse_s)
         rows.append(score)
         print(f"[min_confidence {level:g}] {score['num_points']} points, accuracy "
               f"{fmt(score['accuracy_pct'])}, completeness {fmt(score['completeness_pct'])}, "
               f"F1 {fmt(score['f1_pct'])}", flush=True)
-    path.unlink(missing_ok=True)  # the last level's cloud; the default's is cloud_pvs.ply
+    for leftover in (path, path.with_suffix(".ply.vis"), path.with_suffix(".fuse_config.json")):
+        leftover.unlink(missing_ok=True)
     return rows
 
 
