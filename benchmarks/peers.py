@@ -6,7 +6,10 @@ references and sources of ``hololens_quick.py`` (the same cached COLMAP model, t
 each reference's ranked sources, the same depth ranges), at the images' own size (hololens-dev's
 540 x 360, which is also ``hololens_quick.py``'s map size), scored by the same
 :func:`colmap_pvs.evaluate.evaluate_depth`. Each peer's depth is written as the photometric map of its
-own workspace ``WORK/quick/peer_<teacher>_n<N>_o<offset>``, so its numbers read like ours::
+own workspace ``WORK/quick/peer_<teacher>_n<N>_o<offset>``, and its own confidence (IterMVS: the
+probability of its final estimate; PatchmatchNet: its photometric confidence) as that map's confidence,
+so its numbers, relative AUSE included (how well the confidence ranks the AbsRel of the pixels), read like
+ours::
 
     python benchmarks/peers.py --itermvs /path/IterMVS --patchmatchnet /path/PatchmatchNet \\
         --stride 3 --num_views 11
@@ -38,7 +41,7 @@ import teacher_labels as tl  # noqa: E402
 
 from colmap_pvs.config import config_from_dict  # noqa: E402
 from colmap_pvs.evaluate import EvaluateDepthConfig, evaluate_depth  # noqa: E402
-from colmap_pvs.io.maps import write_depth_map  # noqa: E402
+from colmap_pvs.io.maps import write_array, write_depth_map  # noqa: E402
 from colmap_pvs.io.workspace import write_patch_match_cfg  # noqa: E402
 from colmap_pvs.views import ViewSelectionConfig  # noqa: E402
 
@@ -89,15 +92,17 @@ def main() -> int:
             views = [ref, *srcs]
             record = record_of(teacher, sd, ref, srcs, images.get(ref))
             out = ws / "stereo" / "depth_maps" / f"{ref}.photometric.bin"
+            conf_out = ws / "stereo" / "confidence_maps" / f"{ref}.photometric.bin"
             stamp = ws / "stereo" / "provenance" / f"{ref}.peer.json"
-            if out.is_file() and stored_record(stamp) == record:
+            if out.is_file() and conf_out.is_file() and stored_record(stamp) == record:
                 continue
             stamp.unlink(missing_ok=True)  # a map without its record is never kept
             t0 = perf_counter()
-            depth, _ = teacher.run([images.get(n) for n in views], [sd.Ks[n] for n in views],
-                                   [sd.poses[n] for n in views], *sd.selection.references[ref].depth_range)
+            depth, conf = teacher.run([images.get(n) for n in views], [sd.Ks[n] for n in views],
+                                      [sd.poses[n] for n in views], *sd.selection.references[ref].depth_range)
             seconds.append(perf_counter() - t0)
             write_depth_map(out, depth)
+            write_array(conf_out, np.asarray(conf, np.float32))
             tl.atomic_json(stamp, {"record": json.loads(record)})
         m = evaluate_depth(EvaluateDepthConfig(workspace_path=ws, gt=a.data / "depth", gt_scale=0.001,
                                                kind="photometric", images=tuple(sources),
@@ -105,9 +110,10 @@ def main() -> int:
         s = m.pooled
         under = " / ".join(f"{s.rel_under_pct[t]:.1f}" for t in sorted(s.rel_under_pct))
         speed = f", {np.mean(seconds[1:] or seconds):.2f} s per image" if seconds else ""
+        ause = f", relative AUSE {m.sparsification['relative_ause']:.3f}" if m.sparsification else ""
         print(f"{key} N={a.num_views} offset {a.offset}: {len(sources)} refs, "
               f"coverage {s.coverage_pct:.1f} %, MAE {s.mae * 1000:.0f} mm, AbsRel {s.absrel:.4f}, "
-              f"% under {sorted(s.rel_under_pct)}: {under}{speed}", flush=True)
+              f"% under {sorted(s.rel_under_pct)}: {under}{ause}{speed}", flush=True)
     return 0
 
 
