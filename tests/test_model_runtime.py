@@ -125,19 +125,40 @@ def test_shipped_checkpoint_inference_path_matches_reference_path():
 
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("chunk", [1, 600, 1 << 30])
-def test_upsample2_add_equals_interpolate_plus_add(monkeypatch, channels_last, chunk):
+@pytest.mark.parametrize("batch", [1, 2])
+def test_upsample2_add_equals_interpolate_plus_add(monkeypatch, channels_last, chunk, batch):
     monkeypatch.setattr(runtime, "CHUNK_BYTES", chunk)
     g = torch.Generator().manual_seed(0)
-    x = torch.randn(2, 3, 2, 7, 5, generator=g)
-    skip = torch.randn(2, 3, 4, 14, 10, generator=g)
-    if channels_last:
-        x = x.contiguous(memory_format=torch.channels_last_3d)
-        skip = skip.contiguous(memory_format=torch.channels_last_3d)
-    expected = F.interpolate(x, scale_factor=2.0, mode="trilinear", align_corners=False) + skip
-    out = upsample2_add_(x, skip.clone())
-    torch.testing.assert_close(out, expected, atol=1e-6, rtol=0)
+    for h in (1, 2, 3, 4, 7, 12):
+        x = torch.randn(batch, 3, 2, h, 5, generator=g)
+        skip = torch.randn(batch, 3, 4, 2 * h, 10, generator=g)
+        if channels_last:
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+            skip = skip.contiguous(memory_format=torch.channels_last_3d)
+        expected = F.interpolate(x, scale_factor=2.0, mode="trilinear", align_corners=False) + skip
+        out = upsample2_add_(x, skip.clone())
+        assert torch.equal(out, expected), (h, float((out - expected).abs().max()))
     with pytest.raises(ValueError, match="not twice"):
         upsample2_add_(x, skip[:, :, :, :-1])
+
+
+def test_upsample2_add_splits_a_single_band_into_a_batch_of_two_halves(monkeypatch):
+    """With one batch entry the band is interpolated as two stacked halves (both cores), and every row of
+    ``out`` is added to exactly once."""
+    calls = []
+    interpolate = F.interpolate
+
+    def spy(t, **kw):
+        calls.append(tuple(t.shape))
+        return interpolate(t, **kw)
+
+    monkeypatch.setattr(F, "interpolate", spy)
+    x = torch.randn(1, 2, 3, 9, 4).contiguous(memory_format=torch.channels_last_3d)
+    out = upsample2_add_(x, torch.zeros(1, 2, 6, 18, 8).contiguous(memory_format=torch.channels_last_3d))
+    assert calls == [(2, 2, 3, 6, 4)]
+    monkeypatch.setattr(F, "interpolate", interpolate)
+    torch.testing.assert_close(out, F.interpolate(x, scale_factor=2.0, mode="trilinear", align_corners=False),
+                               atol=0, rtol=0)
 
 
 def test_memory_estimate_grows_with_size_and_views():

@@ -159,23 +159,46 @@ def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     Works on bands of rows: each band of input rows ``[a, b)`` is upsampled with one row of context on
     either side (what the interpolation reads; at the image border the band is clamped exactly like the
     full interpolation), and the rows ``[2a, 2b)`` are added into ``out``. The same numbers as one
-    ``F.interpolate`` followed by an addition, without the full-size temporaries.
+    ``F.interpolate`` followed by an addition, without the full-size temporaries. With ``B = 1`` a band is
+    upsampled as two overlapping halves stacked into a batch of 2 (:func:`_half_windows`): torch's CPU
+    kernel parallelises over the batch and the channels-first rows, not over the rows of one
+    channels-last entry, so this keeps both cores busy; each output row still reads the same inputs with
+    the same weights (the halves are integer row shifts), so the numbers are the same.
     """
     B, C, D, h, w = x.shape
     if out.shape != (B, C, 2 * D, 2 * h, 2 * w):
         raise ValueError(f"upsample2_add_: out {tuple(out.shape)} is not twice x {tuple(x.shape)}")
+    fmt = _memory_format(x)
     row_bytes = B * C * 4 * D * w * x.element_size()  # one input row becomes 2 x (2D x 2w) outputs
     rows = max(1, min(h, chunk_bytes() // max(1, row_bytes) - 2))
     for a in range(0, h, rows):
         b = min(h, a + rows)
         lo, hi = max(0, a - 1), min(h, b + 1)
-        # A contiguous copy of the (small) input band: interpolation of a strided view is slower.
-        band = x[:, :, :, lo:hi].contiguous(memory_format=_memory_format(x))
-        up = F.interpolate(band, scale_factor=2.0, mode="trilinear", align_corners=False)
-        off = 2 * (a - lo)
-        out[:, :, :, 2 * a : 2 * b].add_(up[:, :, :, off : off + 2 * (b - a)])
-        del up
+        if B == 1 and b - a >= 2:
+            # pieces: (batch entries, window start, first kept row, end of kept rows), rows of x
+            top, n, mid = _half_windows(lo, hi)
+            band = torch.cat([x[:, :, :, top : top + n], x[:, :, :, hi - n : hi]])
+            pieces = ((slice(0, 1), top, a, mid), (slice(1, 2), hi - n, mid, b))
+        else:
+            # A contiguous copy of the (small) input band: interpolation of a strided view is slower.
+            band = x[:, :, :, lo:hi]
+            pieces = ((slice(None), lo, a, b),)
+        up = F.interpolate(band.contiguous(memory_format=fmt), scale_factor=2.0, mode="trilinear",
+                           align_corners=False)
+        for entries, start, first, end in pieces:
+            off = 2 * (first - start)
+            out[:, :, :, 2 * first : 2 * end].add_(up[entries, :, :, off : off + 2 * (end - first)])
+        del up, band
     return out
+
+
+def _half_windows(lo: int, hi: int) -> tuple[int, int, int]:
+    """Split the input rows ``[lo, hi)`` (``hi - lo >= 3``, or 2 at an image border) into two windows of
+    ``n`` rows each, ``[lo, lo + n)`` and ``[hi - n, hi)``, that overlap by at least two rows; returns
+    ``(lo, n, mid)``: the first window's rows are kept below ``mid``, the second's from ``mid``, so every
+    kept row has its neighbours (or the image border) inside its own window."""
+    n = (hi - lo + 1) // 2 + 1
+    return lo, n, lo + n - 1
 
 
 class Conv(nn.Module):
