@@ -161,9 +161,9 @@ def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     full interpolation), and the rows ``[2a, 2b)`` are added into ``out``. The same numbers as one
     ``F.interpolate`` followed by an addition, without the full-size temporaries. With ``B = 1`` a band is
     upsampled as two overlapping halves stacked into a batch of 2 (:func:`_half_windows`): torch's CPU
-    kernel parallelises over the batch and the channels-first rows, not over the rows of one
-    channels-last entry, so this keeps both cores busy; each output row still reads the same inputs with
-    the same weights (the halves are integer row shifts), so the numbers are the same.
+    kernel runs one channels-last batch entry on one core, so this keeps two cores busy; each output row
+    still reads the same inputs with the same weights (the halves are integer row shifts), so the
+    numbers are the same.
     """
     B, C, D, h, w = x.shape
     if out.shape != (B, C, 2 * D, 2 * h, 2 * w):
