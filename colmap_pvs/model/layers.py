@@ -159,22 +159,23 @@ def upsample2_add_(x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     Works on bands of rows: each band of input rows ``[a, b)`` is upsampled with one row of context on
     either side (what the interpolation reads; at the image border the band is clamped exactly like the
     full interpolation), and the rows ``[2a, 2b)`` are added into ``out``. The same numbers as one
-    ``F.interpolate`` followed by an addition, without the full-size temporaries. With ``B = 1`` a band is
-    upsampled as two overlapping halves stacked into a batch of 2 (:func:`_half_windows`): torch's CPU
-    kernel runs one channels-last batch entry on one core, so this keeps two cores busy; each output row
-    still reads the same inputs with the same weights (the halves are integer row shifts), so the
-    numbers are the same.
+    ``F.interpolate`` followed by an addition, without the full-size temporaries. A channels-last band of
+    one batch entry on the CPU is upsampled as two overlapping halves stacked into a batch of 2
+    (:func:`_half_windows`): torch's CPU kernel runs one channels-last batch entry on one core, so this
+    keeps two cores busy; each output row still reads the same inputs with the same weights (the halves
+    are integer row shifts), so the numbers are the same.
     """
     B, C, D, h, w = x.shape
     if out.shape != (B, C, 2 * D, 2 * h, 2 * w):
         raise ValueError(f"upsample2_add_: out {tuple(out.shape)} is not twice x {tuple(x.shape)}")
     fmt = _memory_format(x)
+    split = B == 1 and fmt == torch.channels_last_3d and x.device.type == "cpu"
     row_bytes = B * C * 4 * D * w * x.element_size()  # one input row becomes 2 x (2D x 2w) outputs
     rows = max(1, min(h, chunk_bytes() // max(1, row_bytes) - 2))
     for a in range(0, h, rows):
         b = min(h, a + rows)
         lo, hi = max(0, a - 1), min(h, b + 1)
-        if B == 1 and b - a >= 2:
+        if split and b - a >= 2:
             # pieces: (batch entries, window start, first kept row, end of kept rows), rows of x
             top, n, mid = _half_windows(lo, hi)
             band = torch.cat([x[:, :, :, top : top + n], x[:, :, :, hi - n : hi]])
