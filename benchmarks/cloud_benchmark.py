@@ -33,7 +33,9 @@ model, references and sources; a ``hololens_quick.py --stride 3 --tag TAG`` work
    (``photometric``) and the completion (``filled``) (``colmap_pvs.evaluate.evaluate_depth``); a frame
    is flagged where the completion is more than ``--flag_points`` (5) points below the network map.
    ``--picture OUT.jpg``: the ``--picture_count`` worst frames, one row each: image | GT depth |
-   relative error of the network map | of the completion (black 0 to yellow >= 10 %, black without GT).
+   relative error of the network map | of the completion (black 0 to yellow >= 10 %, black without GT)
+   | the completion's confidence (black 0 to yellow 1: where the error is bright, a confidence that
+   ranks well is dark).
 
 Prints one table and the flags, and writes every number to ``--json`` (default
 ``WORK/quick/TAG_clean/cloud_benchmark.json``).
@@ -58,7 +60,7 @@ from far_sources_split import picture_row
 from colmap_pvs.config import config_from_dict
 from colmap_pvs.evaluate import cloud_metrics, read_gt_depth
 from colmap_pvs.geometry import backproject_depth
-from colmap_pvs.io.maps import read_depth_map
+from colmap_pvs.io.maps import read_array, read_depth_map
 from colmap_pvs.io.sparse import read_sparse_model
 from colmap_pvs.io.workspace import write_patch_match_cfg
 from colmap_pvs.upsampling import resize_nearest
@@ -300,7 +302,10 @@ def write_picture(path: Path, ws: Path, data: Path, names: list[str]) -> None:
             d = read_depth_map(ws / "stereo" / "depth_maps" / f"{name}.{kind}.bin")
             maps.append(d if d.shape == (h, w) else resize_nearest(d, h, w))
         row = picture_row(data / "images" / name, gt, np.zeros((h, w), bool), maps)
-        rows.append(np.concatenate([row[:, :w], depth_tile(gt), row[:, w:]], axis=1))
+        conf = read_array(ws / "stereo" / "confidence_maps" / f"{name}.filled.bin")
+        conf = conf if conf.shape == (h, w) else resize_nearest(conf, h, w)
+        conf_tile = cv2.applyColorMap((np.clip(conf, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+        rows.append(np.concatenate([row[:, :w], depth_tile(gt), row[:, w:], conf_tile], axis=1))
     cv2.imwrite(str(path), np.concatenate(rows, axis=0), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
