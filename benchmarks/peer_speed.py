@@ -351,12 +351,9 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work_dir.resolve()
     sparse, refs = real_depth.consecutive_references(args.data, work, args.threads, args.first, args.count)
     base = work / "ws" / "peer_speed"
-    cfg_text = "".join(f"{r}\n__auto__, {args.num_views - 1}\n" for r in refs)
 
     def fresh(ws: Path) -> Path:  # images/ and sparse/ linked, stereo/ holding only patch-match.cfg
-        real_depth.make_workspace(ws, args.data / "images", sparse)
-        (ws / "stereo" / "patch-match.cfg").write_text(cfg_text)
-        return ws
+        return real_depth.auto_sources_workspace(ws, args.data / "images", sparse, refs, args.num_views)
 
     fields = {"workspace_path": str(fresh(base / "plan")), "max_image_size": args.max_image_size,
               "num_views": args.num_views, "threads": args.threads}

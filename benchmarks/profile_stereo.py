@@ -55,10 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     ws = work / "ws" / "profile"
     if ws.exists():
         shutil.rmtree(ws)
-    real_depth.make_workspace(ws, args.data / "images", sparse)
-    (ws / "stereo" / "patch-match.cfg").write_text(
-        "".join(f"{r}\n__auto__, {args.num_views - 1}\n" for r in refs)
-    )
+    real_depth.auto_sources_workspace(ws, args.data / "images", sparse, refs, args.num_views)
     start = time.perf_counter()
     fields = {
         "workspace_path": str(ws),

@@ -157,6 +157,14 @@ def consecutive_references(data: Path, work: Path, threads: int, first: int,
     return sparse, names[first : first + count]
 
 
+def auto_sources_workspace(ws: Path, images: Path, sparse: Path, refs: list[str], num_views: int) -> Path:
+    """A fresh workspace (:func:`make_workspace`) whose ``stereo/`` holds only a ``patch-match.cfg`` listing
+    ``refs``, each with ``__auto__, num_views - 1`` sources (the stereo step's view selection picks them)."""
+    make_workspace(ws, images, sparse)
+    (ws / "stereo" / "patch-match.cfg").write_text("".join(f"{r}\n__auto__, {num_views - 1}\n" for r in refs))
+    return ws
+
+
 def add_frame_args(p: argparse.ArgumentParser, stride: int) -> None:
     """The data, work folder, frames (``--stride``, ``--offset``, ``--frames``), ``--num_views`` and
     ``--threads`` arguments that :func:`quick_model` and :func:`quick_sources` read."""

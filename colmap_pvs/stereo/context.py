@@ -267,7 +267,7 @@ class StereoContext:
     image_hashes: dict[str, str] = field(default_factory=dict)  # name -> sha256 of its file, once a run
     reference_cache: dict[str, Reference] = field(default_factory=dict)  # name -> its Reference, once a run
     _hash_lock: threading.Lock = field(default_factory=threading.Lock)
-    seed_lock: threading.Lock = field(default_factory=threading.Lock)  # guards seed_cache
+    seed_lock: threading.Lock = field(default_factory=threading.Lock)  # guards seed_cache and _check_locks
     _check_locks: dict[str, threading.Lock] = field(default_factory=dict)
 
     def reference(self, name: str) -> Reference:
@@ -284,7 +284,7 @@ class StereoContext:
     def check_lock(self, name: str) -> threading.Lock:
         """The lock held while image ``name``'s photometric maps are checked against its sources, so that
         references run in threads check each image once (the others then find it in ``seed_cache``)."""
-        with self._hash_lock:
+        with self.seed_lock:
             return self._check_locks.setdefault(name, threading.Lock())
 
     def image_sha256(self, name: str) -> str:
