@@ -28,8 +28,8 @@ The stereo step hands these functions the *seeds* of the geometric pass as the k
 that 3 sources agree with within 2.5 %, ``stereo/seed_maps``; why strict seeds: ``benchmarks/RESULTS.md``,
 "Stop 28"), of the reference and of its sources. Every kept pixel
 stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the pixels the
-sources or the segment planes gave, then the fitted ones. The stereo step writes the result as
-``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
+sources or the segment planes gave, then the fitted ones, each times the network's confidence. The
+stereo step writes the result as ``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
 (``docs/CONVENTIONS.md``); COLMAP's fusion never reads it. Arrays are numpy ``[H, W]`` (depth in
 the map's units, 0 = none).
 """
@@ -473,19 +473,28 @@ def splat_depths(
     return np.where(agree >= min_sources, median, 0.0).astype(np.float32), agree
 
 
+#: Least factor of the network's probability in :func:`completed_confidence`: a pixel where the network
+#: gave no depth (probability 0) keeps a positive score, above the unsupported pixels' 0.
+NETWORK_FACTOR_FLOOR = 1e-3
+
+
 def completed_confidence(
     kept: np.ndarray, splatted: np.ndarray, geometric: np.ndarray, photometric: np.ndarray,
     splat_support: np.ndarray, segmented: np.ndarray | None = None, segment_inliers: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``[H, W]`` confidence of a completed map in ``[0, 1]``: kept, then given, then fitted pixels.
+    """``[H, W]`` confidence score of a completed map in ``[0, 1]``: its tier times the network's.
 
-    ``0.5 + 0.5 * geometric`` where ``kept``; ``0.25 + 0.25 * splat_support`` where ``splatted`` (the
-    fraction of the sources that agreed, in ``[0, 1]``); ``0.25 + 0.25 * segment_inliers`` where
-    ``segmented`` (the inlier fraction of the segment plane that gave the pixel,
-    :func:`segment_planes`); ``0.25 * photometric`` elsewhere (all inputs ``[H, W]``, confidences in
+    The tier: ``0.5 + 0.5 * geometric`` where ``kept``; ``0.25 + 0.25 * splat_support`` where
+    ``splatted`` (the fraction of the sources that agreed, in ``[0, 1]``); ``0.25 + 0.25 *
+    segment_inliers`` where ``segmented`` (the inlier fraction of the segment plane that gave the
+    pixel, :func:`segment_planes`); ``0.25`` elsewhere (all inputs ``[H, W]``, confidences in
     ``[0, 1]``). The sources confirmed the kept pixels, the splatted ones come from pixels the sources
     kept, a segment's plane from the known pixels of its own surface, and nobody confirmed the fitted
-    ones; within each group the group's own confidence ranks. ``segmented`` wins over ``splatted``.
+    ones. ``segmented`` wins over ``splatted``. The score is the tier times ``photometric``, the
+    network's probability at the pixel (at least :data:`NETWORK_FACTOR_FLOOR`, so that every pixel
+    keeps a positive score): within every tier the depth is more often wrong where the network was
+    unsure, and a kept pixel the network doubts ranks below a well-supported plane's
+    (``benchmarks/RESULTS.md``, "The network's confidence in the completion's").
     """
     segmented = np.zeros_like(kept) if segmented is None else segmented
     segment_inliers = np.zeros(kept.shape, np.float32) if segment_inliers is None else segment_inliers
@@ -497,6 +506,7 @@ def completed_confidence(
     def unit(a):
         return np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0)
 
-    conf = np.where(splatted, 0.25 + 0.25 * unit(splat_support), 0.25 * unit(photometric))
-    conf = np.where(segmented, 0.25 + 0.25 * unit(segment_inliers), conf)
-    return np.where(kept, 0.5 + 0.5 * unit(geometric), conf).astype(np.float32)
+    tier = np.where(splatted, 0.25 + 0.25 * unit(splat_support), np.float32(0.25))
+    tier = np.where(segmented, 0.25 + 0.25 * unit(segment_inliers), tier)
+    tier = np.where(kept, 0.5 + 0.5 * unit(geometric), tier)
+    return (tier * np.maximum(unit(photometric), NETWORK_FACTOR_FLOOR)).astype(np.float32)

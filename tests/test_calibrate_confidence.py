@@ -21,8 +21,9 @@ def tool():
 
 def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tmp_path, tiny_checkpoint,
                                                         capsys):
-    """The documented procedure: raw maps from a checkpoint without a calibration, fit photometric and
-    geometric, stereo again with them, fit filled on top; every step refuses maps of the wrong kind."""
+    """The documented procedure: raw maps from a checkpoint without a calibration, fit photometric,
+    stereo again with it, fit geometric (whose score reads the photometric probability), stereo again,
+    fit filled on top; every step refuses maps of the wrong kind."""
     from scenes import render_view, stereo_config
 
     from colmap_pvs.stereo import run_stereo
@@ -43,12 +44,15 @@ def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tm
         np.save(gt / f"{name}.npy", view["depth"].astype(np.float32))
     out = checkpoint.with_name("tiny.calibration.json")
     common = ["--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}"]
-    assert tool.main(["fit", *common, "--kinds", "photometric", "geometric", "--tolerance", "0.1",
+    # geometric scores read the photometric probability: not fitted in one go from raw maps
+    with pytest.raises(SystemExit, match="another calibration"):
+        tool.main(["fit", *common, "--kinds", "photometric", "geometric", "--tolerance", "0.1",
+                   "--out", str(tmp_path / "both.json")])
+    assert tool.main(["fit", *common, "--kinds", "photometric", "--tolerance", "0.1",
                       "--data", "analytic", "--out", str(out)]) == 0
     cal = load_calibration(out)
-    assert set(cal.curves) == {"photometric", "geometric"} and cal.tolerance == 0.1
+    assert set(cal.curves) == {"photometric"} and cal.tolerance == 0.1
     assert cal.fit["photometric"]["data"] == "analytic" and cal.fit["photometric"]["workspaces"] == ["ws"]
-    assert cal.fit["geometric"]["checkpoint_sha256"] == file_sha256(checkpoint)
     # the fitted photometric curve predicts the share of right pixels of these maps (in-sample)
     conf, right = [], []
     for name in analytic_scene["names"]:
@@ -65,10 +69,22 @@ def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tm
     # raw maps are checked only through --apply; the filled maps still hold raw-made scores
     with pytest.raises(SystemExit, match="raw scores"):
         tool.main(["check", *common])
+    for kind in ("geometric", "filled"):
+        with pytest.raises(SystemExit, match="other curves than|another calibration"):
+            tool.main(["fit", *common, "--kinds", kind, "--tolerance", "0.1", "--start", str(out),
+                       "--out", str(out)])
+    run_stereo(cfg)  # the curve beside the checkpoint: calibrated photometric maps
+    with pytest.raises(SystemExit, match="calibrated confidences"):
+        tool.main(["fit", *common, "--kinds", "photometric", "--out", str(tmp_path / "x")])
+    assert tool.main(["fit", *common, "--kinds", "geometric", "--tolerance", "0.1", "--start", str(out),
+                      "--out", str(out)]) == 0
+    cal = load_calibration(out)
+    assert set(cal.curves) == {"photometric", "geometric"}
+    assert cal.fit["geometric"]["checkpoint_sha256"] == file_sha256(checkpoint)
     with pytest.raises(SystemExit, match="other curves than|another calibration"):
         tool.main(["fit", *common, "--kinds", "filled", "--tolerance", "0.1", "--start", str(out),
                    "--out", str(out)])
-    run_stereo(cfg)  # the curves beside the checkpoint: calibrated photometric and geometric maps
+    run_stereo(cfg)  # calibrated photometric and geometric maps
     with pytest.raises(SystemExit, match="calibrated confidences"):
         tool.main(["fit", *common, "--kinds", "geometric", "--out", str(tmp_path / "x")])
     assert tool.main(["fit", *common, "--kinds", "filled", "--tolerance", "0.1", "--start", str(out),

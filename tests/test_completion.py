@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from colmap_pvs.completion import (
+    NETWORK_FACTOR_FLOOR,
     complete_depth,
     completed_confidence,
     plane_deviation,
@@ -72,23 +73,34 @@ def test_complete_depth_refuses_mismatched_shapes():
         complete_depth(np.ones((4, 5), np.float32), np.ones((4, 5), np.float32), factor=0)
 
 
-def test_completed_confidence_ranks_kept_then_splatted_then_fitted_pixels():
+def test_completed_confidence_is_the_tier_times_the_networks_probability():
     rng = np.random.default_rng(0)
     r = rng.random((30, 40))
     kept, splatted = r < 0.5, (r >= 0.5) & (r < 0.7)
     fitted = ~kept & ~splatted
     geometric = np.where(kept, rng.random((30, 40)), 0.0).astype(np.float32)
-    photometric = rng.random((30, 40)).astype(np.float32)
-    photometric[fitted.nonzero()[0][0], fitted.nonzero()[1][0]] = np.nan
-    photometric[kept | splatted] = 1.0  # a kept or splatted pixel's photometric confidence does not matter
     support = rng.random((30, 40)).astype(np.float32)
-    conf = completed_confidence(kept, splatted, geometric, photometric, support)
+    # Where the network is sure, the tiers alone: kept above splatted above fitted, each ranked by its own.
+    sure = np.ones((30, 40), np.float32)
+    conf = completed_confidence(kept, splatted, geometric, sure, support)
     assert conf.dtype == np.float32 and np.all((conf >= 0) & (conf <= 1))
     assert conf[kept].min() >= conf[splatted].max() and conf[splatted].min() >= conf[fitted].max()
-    # Within each group the group's own confidence orders the pixels.
     np.testing.assert_allclose(conf[kept], 0.5 + 0.5 * geometric[kept], rtol=1e-6)
     np.testing.assert_allclose(conf[splatted], 0.25 + 0.25 * support[splatted], rtol=1e-6)
-    np.testing.assert_allclose(conf[fitted], 0.25 * np.nan_to_num(photometric[fitted]), rtol=1e-6)
+    np.testing.assert_allclose(conf[fitted], 0.25, rtol=1e-6)
+    # Every tier times the network's probability; where it has none (0, NaN) the floor keeps it positive.
+    photometric = rng.random((30, 40)).astype(np.float32)
+    photometric[fitted.nonzero()[0][0], fitted.nonzero()[1][0]] = np.nan
+    photometric[kept.nonzero()[0][0], kept.nonzero()[1][0]] = 0.0
+    doubted = completed_confidence(kept, splatted, geometric, photometric, support)
+    factor = np.maximum(np.nan_to_num(photometric), NETWORK_FACTOR_FLOOR)
+    np.testing.assert_allclose(doubted, conf * factor, rtol=1e-6)
+    assert doubted.min() > 0
+    # So a kept pixel the network doubts ranks below a splatted one it trusts.
+    k, s = tuple(np.argwhere(kept)[1]), tuple(np.argwhere(splatted)[0])
+    photometric[k], photometric[s] = 0.1, 1.0
+    mixed = completed_confidence(kept, splatted, geometric, photometric, support)
+    assert mixed[k] < mixed[s]
     with pytest.raises(ShapeError):
         completed_confidence(kept, splatted, geometric[:, :5], photometric, support)
     # Segment planes rank with the pixels the sources gave, by their inlier fraction, and win over
@@ -96,7 +108,7 @@ def test_completed_confidence_ranks_kept_then_splatted_then_fitted_pixels():
     segmented = (fitted & (r > 0.9)) | (splatted & (r < 0.6))
     assert (segmented & splatted).any() and (segmented & fitted).any()
     inliers = rng.random((30, 40)).astype(np.float32)
-    conf = completed_confidence(kept, splatted, geometric, photometric, support, segmented, inliers)
+    conf = completed_confidence(kept, splatted, geometric, sure, support, segmented, inliers)
     np.testing.assert_allclose(conf[segmented], 0.25 + 0.25 * inliers[segmented], rtol=1e-6)
     np.testing.assert_allclose(conf[splatted & ~segmented], 0.25 + 0.25 * support[splatted & ~segmented],
                                rtol=1e-6)
@@ -448,6 +460,12 @@ def test_geometric_confidence_ranks_off_plane_and_low_parallax_pixels_lower():
     # One agreeing source without visibility: full confidence; no sources: none (not 0 / 0).
     np.testing.assert_array_equal(geometric_confidence(np.ones((1, 2, 3), bool), None), 1.0)
     np.testing.assert_array_equal(geometric_confidence(np.zeros((0, 2, 3), bool), None), 0.0)
+    # Times the network's probability of the depth (NaN: none).
+    network = np.array([[1.0, 0.5, 0.0], [0.25, np.nan, 2.0]], np.float32)
+    np.testing.assert_allclose(geometric_confidence(agree, vis, None, None, network),
+                               0.6 * np.array([[1.0, 0.5, 0.0], [0.25, 0.0, 1.0]]), rtol=1e-6)
+    with pytest.raises(ShapeError):
+        geometric_confidence(agree, vis, None, None, network[:1])
 
 
 def test_segment_planes_coarsest_segments_need_local_support(monkeypatch):

@@ -134,7 +134,8 @@ def test_a_calibration_fitted_for_other_weights_is_used_with_a_warning(tmp_path,
 def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(analytic_scene, tmp_path,
                                                                               tiny_checkpoint, caplog):
     """Every pass writes its score through its kind's curve, the checkpoint's calibration (without one,
-    the score itself, with a warning); the curves are in each pass's provenance, so another calibration
+    the score itself, with a warning); the geometric score reads the network's probability (calibrated
+    when there is a curve); the curves are in each pass's provenance, so another calibration
     recomputes the passes it changes and the same one nothing."""
     import shutil
 
@@ -172,19 +173,24 @@ def test_stereo_writes_each_kind_calibrated_and_a_new_calibration_recomputes(ana
     assert sorted(res.processed) == sorted(names)
     cal = load_calibration(path)
     filled = maps("filled")
+    photometric = maps("photometric")
     for kind in ("photometric", "geometric"):
         for n, (d, c) in maps(kind).items():
             d_raw, c_raw = raw[kind][n]
             np.testing.assert_array_equal(d, d_raw)  # the same pixels (no threshold set)
             added = np.zeros(d.shape, bool)  # the confirmed completion: the filled maps' confidence
+            score = c_raw
             if kind == "geometric":
                 added = read_depth_map(ws / "stereo" / "confirm_maps" / f"{n}.bin") > 0
                 np.testing.assert_array_equal(c[added], filled[n][1][added])
+                # the network's factor: its raw score in the first run, its probability now
+                q_raw, q = raw["photometric"][n][1], photometric[n][1]
+                added |= q_raw < 1e-3
+                score = c_raw / np.maximum(q_raw, 1e-3) * q
             valid = (d > 0) & ~added
             assert valid.mean() > 0.05
-            np.testing.assert_allclose(c[valid], cal.curves[kind](c_raw[valid]), atol=1e-6)
+            np.testing.assert_allclose(c[valid], cal.curves[kind](score[valid]), atol=1e-5)
             assert np.all(c[d <= 0] == 0)
-    photometric = maps("photometric")
     for n, (d, c) in maps("filled").items():
         assert (d > 0).all()  # a depth everywhere, each supported one through the filled curve
         supported = c > 0  # the others: the network's depth, confidence exactly 0

@@ -9,14 +9,16 @@ Fit (on maps of uncalibrated scores: stereo run with a copy of the checkpoint th
     mkdir raw && cp colmap_pvs/weights/pvsnet_default.pt raw/
     colmap-pvs stereo --workspace_path W --checkpoint raw/pvsnet_default.pt
     python tools/calibrate_confidence.py fit --workspaces W1 W2 ... --gt gt/depth_maps \\
-        --gt_pattern {name} --kinds photometric geometric --out raw/pvsnet_default.calibration.json
+        --gt_pattern {name} --kinds photometric --out cal1.json
 
-``filled`` scores are made from the photometric and geometric probabilities on disk, so fit it after
-the others: rerun stereo with that calibration beside the copy (no ``filled`` curve yet, so the filled
-maps hold scores) and ``fit --kinds filled --start raw/pvsnet_default.calibration.json --out ...``.
-The result goes beside the checkpoint it was fitted for. ``fit`` reads each map's provenance: it refuses
-calibrated maps, and filled maps whose photometric or geometric maps were made with other curves than
-``--start``'s; refitting those two drops ``--start``'s filled curve. It records the checkpoint's sha256
+The geometric scores are made from the photometric probabilities on disk, and the ``filled`` scores
+from the photometric and geometric ones (``READS``), so each is fitted after those it reads: copy
+``cal1.json`` beside the raw checkpoint as ``raw/pvsnet_default.calibration.json``, rerun stereo (the
+photometric maps are kept, the later ones hold scores) and ``fit --kinds geometric --start cal1.json
+--out cal2.json``; then the same with ``cal2.json`` and ``fit --kinds filled --start cal2.json --out
+...``. The result goes beside the checkpoint it was fitted for. ``fit`` reads each map's provenance: it
+refuses calibrated maps, and maps whose score reads maps made with other curves than ``--start``'s;
+refitting a kind drops ``--start``'s curves of the kinds that read it. It records the checkpoint's sha256
 (from the workspaces' stereo run), which ``stereo`` compares with the weights it loads.
 
 Check (calibrated maps against GT, at the tolerance their provenance names: per kind the reliability
@@ -58,7 +60,7 @@ from colmap_pvs.upsampling import resize_nearest
 
 logger = logging.getLogger("calibrate_confidence")
 #: The kinds whose probabilities (confidence maps) a kind's score reads.
-READS = {"photometric": (), "geometric": (), "filled": ("photometric", "geometric")}
+READS = {"photometric": (), "geometric": ("photometric",), "filled": ("photometric", "geometric")}
 
 
 @dataclass
@@ -158,11 +160,11 @@ def fit(args) -> int:
         raise SystemExit(f"--start {args.start} was fitted at another tolerance ({start['tolerance']})")
     out = {"tolerance": args.tolerance, "curves": dict(start.get("curves", {})),
            "fit": dict(start.get("fit", {}))}
-    if "filled" in out["curves"] and set(args.kinds) & {"photometric", "geometric"}:
-        # the filled score reads the other two probabilities: its curve is stale with theirs
-        print("dropping the filled curve of --start: refit it after these")
-        out["curves"].pop("filled")
-        out["fit"].pop("filled", None)
+    for stale in [k for k in KINDS if k in out["curves"] and set(READS[k]) & set(args.kinds)]:
+        # its score reads a probability refitted here: its curve is stale with that one's
+        print(f"dropping the {stale} curve of --start: refit it after these")
+        out["curves"].pop(stale)
+        out["fit"].pop(stale, None)
     for kind in args.kinds:
         px = collect(args, kind)
         if px.conf.size == 0:

@@ -20,7 +20,7 @@ DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_d
 #: The resolved config of the last run, in ``stereo/``.
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 5, "geometric": 8, "filled": 6, "confirm": 1}
+FORMAT_VERSIONS = {"photometric": 5, "geometric": 9, "filled": 7, "confirm": 1}
 Stage = Literal["photometric", "geometric", "filled", "confirm"]
 #: Largest ``network_scale``: the network on twice the map's size (about 4x its time and memory).
 NETWORK_SCALE_MAX = 2.0

@@ -34,6 +34,7 @@ from .context import RefOutcome, StereoContext
 from .outputs import (
     fingerprint,
     geometric_files_exist,
+    read_confidence,
     read_visibility,
     stage_settings,
     stale_reason,
@@ -61,22 +62,25 @@ SEED_CACHE_SIZE = 32
 
 def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
                          deviation: np.ndarray | None = None,
-                         parallax: np.ndarray | None = None) -> np.ndarray:
+                         parallax: np.ndarray | None = None,
+                         network: np.ndarray | None = None) -> np.ndarray:
     """``[H, W]`` confidence of a geometric map in ``[0, 1]`` (definition: ``docs/CONVENTIONS.md``).
 
-    ``c = exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * min(1, p_s / GEOM_FULL_PARALLAX) * agree_s / S``:
+    ``c = q * exp(-e / GEOM_DEVIATION_SCALE) * sum_s v_s * min(1, p_s / GEOM_FULL_PARALLAX) * agree_s / S``:
     the fraction of the ``S`` sources that confirm the pixel, each weighted by the network's learned
     visibility ``v_s`` of that source at the pixel (``agree`` ``[S, H, W]``, ``visibility``
     ``[S, H, W]`` or ``None`` for all ones) and by its parallax ``p_s`` (``[S, H, W]`` pixels,
     :attr:`~colmap_pvs.consistency.ConsistencyResult.parallax`; ``None``: full), times a factor for
     how far the pixel stands off the local plane of the kept pixels around it (``deviation`` ``e``
-    ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0). A source with little
-    parallax agrees with almost any depth, so its agreement says less. Chosen by measurement
-    (``benchmarks/RESULTS.md``, "Geometric confidence with the plane deviation" and the entries
-    before it): the weighted fraction ranks errors better than the
-    network's probability mass (which does not rank the consistent pixels at all), the agreement
-    count alone, or the reprojection and depth errors; the deviation factor and the parallax weight
-    rank them better still.
+    ``[H, W]``, :func:`~colmap_pvs.completion.plane_deviation`; ``None``: 0), times the network's own
+    probability ``q`` of its depth (``network`` ``[H, W]``, the photometric confidence; ``None``: 1).
+    A source with little parallax agrees with almost any depth, so its agreement says less. Chosen by
+    measurement (``benchmarks/RESULTS.md``, "Geometric confidence with the plane deviation", the
+    entries before it, and "The network's confidence in the completion's"): the weighted fraction
+    ranks errors better than the network's probability mass alone, the agreement count alone, or the
+    reprojection and depth errors; the deviation factor, the parallax weight and the network's
+    probability rank them better still (views that agree on a wrong depth are most often views the
+    network was unsure in).
     """
     S = max(agree.shape[0], 1)
     weighted = agree if visibility is None else np.where(agree, visibility, 0.0)
@@ -85,6 +89,10 @@ def geometric_confidence(agree: np.ndarray, visibility: np.ndarray | None,
             raise ShapeError(f"parallax must be {agree.shape}, got {parallax.shape}")
         weighted = weighted * np.clip(np.nan_to_num(parallax) / GEOM_FULL_PARALLAX, 0.0, 1.0)
     conf = weighted.sum(0) / S
+    if network is not None:
+        if network.shape != conf.shape:
+            raise ShapeError(f"network must be {conf.shape}, got {network.shape}")
+        conf = conf * np.clip(np.nan_to_num(network), 0.0, 1.0)
     if deviation is not None:
         if deviation.shape != conf.shape:
             raise ShapeError(f"deviation must be {conf.shape}, got {deviation.shape}")
@@ -239,18 +247,19 @@ def _warn_if_every_source_is_too_close(ctx: StereoContext, name: str, sources: l
 
 
 def _kept(ctx: StereoContext, name: str, sources: list[str], ref: SourceMaps, res,
-          vis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+          vis: np.ndarray | None, network: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(depth, conf)`` ``[H, W]`` of the pixels of ``ref`` (reference ``name``) that the check ``res``
     against ``sources`` keeps: confirmed by ``geom_min_consistent`` sources from
     ``geom_min_triangulation_angle`` or more, averaged over them (``geom_average_depth``), with their
-    geometric confidence (calibrated) of at least ``geom_min_confidence``."""
+    geometric confidence (calibrated; ``network`` ``[H, W]`` the network's probability of ``ref``'s
+    depth) of at least ``geom_min_confidence``."""
     cfg = ctx.config
     _warn_if_every_source_is_too_close(ctx, name, sources, ref, res)
     confirm = res.confirming(cfg.geometric.min_triangulation_angle)  # agreeing, from far enough apart
     keep = (ref.depth > 0) & (confirm.sum(0) >= cfg.geometric.min_consistent)
     depth = res.mean_depth(ref.depth, confirm) if cfg.geometric.average_depth else ref.depth.copy()
     depth = np.where(keep, depth, 0.0).astype(np.float32)
-    score = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax)
+    score = geometric_confidence(confirm, vis, plane_deviation(depth), res.parallax, network)
     conf = ctx.calibration.apply("geometric", score, keep)
     keep &= conf >= cfg.geometric.min_confidence
     depth[~keep] = 0.0
@@ -264,13 +273,19 @@ def _reestimates(ctx: StereoContext, setup: CheckSetup) -> bool:
     return bool(ctx.config.geometric.reestimate and setup.prov.get("sources") and setup.entry is not None)
 
 
+def _network_probability(ctx: StereoContext, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """``[H, W]`` the network's probability of ``name``'s photometric depth (its confidence map)."""
+    return read_confidence(ctx.reference(name).paths["photometric"].confidence, shape)
+
+
 def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: bool = True) -> Checked:
     """:class:`Checked` of ``name`` from its photometric maps and its checked sources' (the seeds
     only, without ``kept``)."""
     ref, srcs, vis = _load_check(ctx, name, setup)
     check = _check_kwargs(ctx)
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    depth, conf = _kept(ctx, name, setup.sources, ref, res, vis) if kept else (None, None)
+    network = _network_probability(ctx, name, ref.depth.shape) if kept else None
+    depth, conf = _kept(ctx, name, setup.sources, ref, res, vis, network) if kept else (None, None)
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
@@ -363,7 +378,7 @@ def _reestimate(ctx: StereoContext, name: str, setup: CheckSetup, timer: Timer) 
     vis = _check_visibility(maps.visibility, all_sources, setup.sources, (h, w))
     with timer.step("consistency"):
         res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-        depth, conf = _kept(ctx, name, setup.sources, ref, res, vis)
+        depth, conf = _kept(ctx, name, setup.sources, ref, res, vis, maps.confidence)
         del res
     return Checked(seeds, depth, conf, reestimated=True)
 
@@ -381,7 +396,8 @@ def _add_splatted(ctx: StereoContext, name: str, setup: CheckSetup, splat_source
                   checked: Checked, timer: Timer) -> tuple[np.ndarray, np.ndarray, int]:
     """``(depth, conf, count)``: the checked maps with the dropped pixels whose surface other views
     confirmed: their seeds projected in (nearest surface per source), the median where enough of them
-    agree (docs/CONVENTIONS.md), and how many pixels that added."""
+    agree (docs/CONVENTIONS.md), with the score :data:`SPLAT_CONFIDENCE` times the share of the
+    sources that agree times the network's probability at the pixel, and how many pixels that added."""
     cfg = ctx.config
     depth, conf = checked.depth, checked.conf
     h, w = depth.shape
@@ -396,7 +412,8 @@ def _add_splatted(ctx: StereoContext, name: str, setup: CheckSetup, splat_source
         K = ctx.map_K(name, (w, h))
         cam_from_world = to_homogeneous(ctx.sparse.image_by_name(name).cam_from_world)
         splat, support = splat_depths(K, cam_from_world, (w, h), seed_maps, cfg.geometric.splat_min_sources)
-        share = SPLAT_CONFIDENCE * support / max(1, len(setup.sources))
+        network = _network_probability(ctx, name, (h, w))
+        share = SPLAT_CONFIDENCE * support / max(1, len(setup.sources)) * network
         splat_conf = ctx.calibration.apply("geometric", share, splat > 0)
         added = ~(depth > 0) & (splat > 0) & (splat_conf >= cfg.geometric.min_confidence)
         depth = np.where(added, splat, depth).astype(np.float32)
