@@ -1532,6 +1532,31 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
     assert differ == [Path("stereo/colmap_pvs_stereo.json")]
 
 
+def test_an_auxiliary_sources_check_makes_only_its_seeds(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+    """A source that is no reference of the run has no geometric pass: the check that makes its seeds
+    (for the references' splatted pixels) skips the kept pixels and their confidence, which only a
+    reference's own pass reads; a reference's check made for another's seeds keeps them for reuse."""
+    ws = _copy(synthetic_ws, tmp_path)
+    _, model = load_workspace(ws)
+    names = sorted(im.name for im in model.images.values())
+    refs = names[:2]
+    write_patch_match_cfg(ws / "stereo" / "patch-match.cfg", {r: [n for n in names if n != r] for r in refs})
+    real, calls = stereo_geometric._check_photometric, []
+
+    def recording(ctx, name, setup, kept=True):
+        calls.append((name, kept))
+        return real(ctx, name, setup, kept)
+
+    monkeypatch.setattr(stereo_geometric, "_check_photometric", recording)
+    res = run_stereo(stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=4,
+                                   max_image_size=64, min_confidence=0))
+    assert sorted(res.processed) == refs and sorted(res.auxiliary) == names[2:]
+    assert sorted(res.geometric_processed) == refs
+    checked = dict(calls)
+    assert len(calls) == len(checked) == len(names), calls  # every image checked once
+    assert {n for n, kept in checked.items() if not kept} == set(names[2:]), calls
+
+
 def test_references_run_at_once_only_in_the_passes_and_sizes_that_allow_it(monkeypatch):
     """Two references at once in the geometric pass and the completion, never in the photometric pass
     or the confirmation, never with a network inside the geometric pass, never beyond torch's threads

@@ -327,8 +327,10 @@ def _source_seeds_locked(ctx: StereoContext, name: str, setup: CheckSetup) -> np
         except (OSError, json.JSONDecodeError, MapFormatError):
             pass
     # the whole check, kept for this image's own geometric pass later in the run (unless that pass
-    # re-estimates, which checks the re-estimate instead)
-    checked = _check_photometric(ctx, name, setup, kept=not _reestimates(ctx, setup))
+    # re-estimates, which checks the re-estimate instead); a source that is no reference of this run
+    # has no geometric pass, so its seeds are all it needs
+    own_pass = name in ctx.references and not _reestimates(ctx, setup)
+    checked = _check_photometric(ctx, name, setup, kept=own_pass)
     write_seeds(paths, checked.seeds, wanted)
     _remember_seeds(ctx, name, wanted, checked)
     return checked.seeds
