@@ -1532,7 +1532,8 @@ def test_references_in_threads_write_the_same_maps_and_check_each_image_once(syn
     assert differ == [Path("stereo/colmap_pvs_stereo.json")]
 
 
-def test_an_auxiliary_sources_check_makes_only_its_seeds(synthetic_ws, tmp_path, tiny_checkpoint, monkeypatch):
+def test_an_auxiliary_sources_check_makes_only_its_seeds(synthetic_ws, tmp_path, tiny_checkpoint,
+                                                         monkeypatch):
     """A source that is no reference of the run has no geometric pass: the check that makes its seeds
     (for the references' splatted pixels) skips the kept pixels and their confidence, which only a
     reference's own pass reads; a reference's check made for another's seeds keeps them for reuse."""
