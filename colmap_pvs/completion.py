@@ -27,8 +27,9 @@ as sheets and streaks: ``benchmarks/RESULTS.md``, "A completion that needs suppo
 The stereo step hands these functions the *seeds* of the geometric pass as the kept pixels (those
 that 3 sources agree with within 2.5 %, ``stereo/seed_maps``; why strict seeds: ``benchmarks/RESULTS.md``,
 "Stop 28"), of the reference and of its sources. Every kept pixel
-stays as it is. :func:`completed_confidence` ranks the kept pixels first, then the pixels the
-sources or the segment planes gave, then the fitted ones, each times the network's confidence. The
+stays as it is. :func:`completed_confidence` ranks, where the network is sure, the kept pixels first,
+then the pixels the sources or the segment planes gave, then the fitted ones; each times the network's
+probability. The
 stereo step writes the result as ``NAME.filled.bin`` in ``stereo/depth_maps`` and ``stereo/confidence_maps``
 (``docs/CONVENTIONS.md``); COLMAP's fusion never reads it. Arrays are numpy ``[H, W]`` (depth in
 the map's units, 0 = none).

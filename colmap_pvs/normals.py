@@ -105,3 +105,47 @@ def fit_normals(depth: np.ndarray, K: np.ndarray, *, window: int = 7, max_relati
     facing = np.sum(n * points, axis=-1) > 0
     n[facing] *= -1.0
     return n.astype(np.float32)
+
+
+def plane_residual(depth: np.ndarray, window: int) -> np.ndarray:
+    """``[H, W]`` float32 how far a depth map departs from a plane around each pixel: the RMS residual
+    of the least-squares plane ``1/d = a u + b v + c`` (a 3D plane is linear in inverse depth) over
+    the valid pixels of the ``window x window`` square centred on the pixel, divided by their mean
+    inverse depth (so a relative depth deviation). 0 on invalid pixels and where fewer than 3 valid
+    pixels or collinear ones leave the plane undetermined. Large at depth edges and on noisy or broken
+    surfaces; 0 on any plane, however slanted.
+
+    Args:
+        depth: ``[H, W]`` z-depth, 0 = invalid; window: odd side in pixels.
+    """
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ShapeError(f"depth must be [H, W], got shape {depth.shape}")
+    if window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be odd and at least 3, got {window}")
+    valid = depth > 0
+    weight = valid.astype(np.float64)
+    z = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+    h, w = depth.shape
+    v, u = np.mgrid[:h, :w].astype(np.float64)
+    u -= w / 2.0  # centred coordinates: smaller sums, less cancellation
+    v -= h / 2.0
+
+    def mean(a):  # over the valid pixels of each window (sums of zero-padded products, over the count)
+        return cv2.boxFilter(a * weight, cv2.CV_64F, (window, window), normalize=False,
+                             borderType=cv2.BORDER_CONSTANT)
+
+    n = mean(np.ones_like(z))
+    m = np.maximum(n, 1.0)
+    mu, mv, mz = mean(u) / m, mean(v) / m, mean(z) / m
+    cuu, cvv, cuv = mean(u * u) / m - mu * mu, mean(v * v) / m - mv * mv, mean(u * v) / m - mu * mv
+    cuz, cvz, czz = mean(u * z) / m - mu * mz, mean(v * z) / m - mv * mz, mean(z * z) / m - mz * mz
+    det = cuu * cvv - cuv * cuv
+    ok = valid & (n >= 3) & (det > 1e-9)
+    det = np.where(ok, det, 1.0)
+    a = (cuz * cvv - cvz * cuv) / det
+    b = (cvz * cuu - cuz * cuv) / det
+    residual = np.sqrt(np.clip(czz - a * cuz - b * cvz, 0.0, None)) / np.maximum(np.abs(mz), 1e-12)
+    return np.where(ok, residual, 0.0).astype(np.float32)

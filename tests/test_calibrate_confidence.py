@@ -20,13 +20,17 @@ def tool():
 
 
 def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tmp_path, tiny_checkpoint,
-                                                        capsys):
+                                                        capsys, monkeypatch):
     """The documented procedure: raw maps from a checkpoint without a calibration, fit photometric,
     stereo again with it, fit geometric (whose score reads the photometric probability), stereo again,
     fit filled on top; every step refuses maps of the wrong kind."""
     from scenes import render_view, stereo_config
 
-    from colmap_pvs.stereo import run_stereo
+    from colmap_pvs.stereo import photometric, run_stereo
+
+    # The untrained network's scores are one value; the local plane's factor (tested elsewhere) would
+    # spread them by float rounding only, into near-ties that 48 knots cannot follow. Off here.
+    monkeypatch.setattr(photometric, "PLANE_RESIDUAL_SCALE", float("inf"))
 
     ws = tmp_path / "ws"
     shutil.copytree(analytic_scene["root"], ws)
@@ -45,9 +49,11 @@ def test_fit_then_check_on_a_workspace_with_known_depth(tool, analytic_scene, tm
     out = checkpoint.with_name("tiny.calibration.json")
     common = ["--workspaces", str(ws), "--gt", "gt", "--gt_pattern", "{name}"]
     # geometric scores read the photometric probability: not fitted in one go from raw maps
-    with pytest.raises(SystemExit, match="another calibration"):
-        tool.main(["fit", *common, "--kinds", "photometric", "geometric", "--tolerance", "0.1",
-                   "--out", str(tmp_path / "both.json")])
+    for kinds in (["photometric", "geometric"], ["geometric", "photometric"], ["filled", "geometric"]):
+        with pytest.raises(SystemExit, match="fit .* after"):
+            tool.main(["fit", *common, "--kinds", *kinds, "--tolerance", "0.1",
+                       "--out", str(tmp_path / "both.json")])
+    assert not (tmp_path / "both.json").exists()
     assert tool.main(["fit", *common, "--kinds", "photometric", "--tolerance", "0.1",
                       "--data", "analytic", "--out", str(out)]) == 0
     cal = load_calibration(out)

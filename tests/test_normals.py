@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from colmap_pvs.errors import ShapeError
 from colmap_pvs.geometry import backproject_depth, pixel_centers
-from colmap_pvs.normals import depth_to_normals
+from colmap_pvs.normals import depth_to_normals, plane_residual
 
 K = np.array([[90.0, 0, 41.0], [0, 95.0, 29.0], [0, 0, 1]])
 
@@ -79,3 +81,31 @@ def test_fitted_normals_beat_finite_differences_on_noisy_depth(analytic_scene):
     inner = np.any(plane != 0, -1)
     assert inner.mean() > 0.8
     np.testing.assert_allclose(plane[inner], np.broadcast_to(n_plane, plane[inner].shape), atol=1e-4)
+
+
+def test_plane_residual_is_zero_on_any_plane_and_large_at_depth_edges():
+    """The RMS residual of the local least-squares plane in inverse depth, relative to the mean inverse
+    depth (docs/CONVENTIONS.md, photometric confidence)."""
+    h, w = 60, 80
+    v, u = np.mgrid[:h, :w].astype(np.float64)
+    slanted = 1.0 / (0.2 + 0.004 * u + 0.002 * v)  # a 3D plane seen at a grazing angle: 1/d linear in u, v
+    assert plane_residual(slanted, 9).max() < 1e-5
+    step = slanted.copy()
+    step[:, 40:] *= 1.5  # a depth edge
+    r = plane_residual(step, 9)
+    assert r[30, 36:44].min() > 0.05 and r[30, :31].max() < 1e-5 and r[30, 49:].max() < 1e-5
+    # one pixel off its plane: inverse depths z_i = z (1 + e) at one of n pixels -> RMS about e sqrt(1/n)
+    bump = np.full((h, w), 2.0)
+    bump[30, 40] = 2.0 / 1.1
+    r = plane_residual(bump, 9)
+    assert 0.1 / 9 * 0.8 < r[30, 40] < 0.1 / 9 * 1.2
+    # invalid pixels: 0 there, ignored around them
+    holes = slanted.copy()
+    holes[::5, ::3] = 0.0
+    r = plane_residual(holes, 9)
+    assert np.all(r[holes == 0] == 0) and r.max() < 1e-5
+    assert plane_residual(np.zeros((h, w)), 9).max() == 0
+    with pytest.raises(ShapeError):
+        plane_residual(np.ones((2, 3, 4)), 9)
+    with pytest.raises(ValueError, match="odd"):
+        plane_residual(slanted, 8)

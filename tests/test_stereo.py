@@ -774,7 +774,7 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
         name = next(n for n in names if np.allclose(poses[0][:3], model.image_by_name(n).cam_from_world))
         calls.append((name, sparse_depth.copy()))
         assert depth.shape == exact[name].shape
-        return exact[name].copy(), conf, vis, prior
+        return exact[name].copy(), np.full_like(conf, 0.25), vis, prior  # a network a quarter sure
 
     monkeypatch.setattr(stereo_photometric, "estimate_depth", network)
     ref = names[0]
@@ -801,6 +801,9 @@ def test_geometric_reestimate_runs_the_network_on_the_agreed_depth(analytic_scen
     geo = read_depth_map(ws / "stereo" / "depth_maps" / f"{ref}.geometric.bin")
     assert (geo[block] > 0).mean() > 0.5  # the re-estimate is right there, and its sources agree
     np.testing.assert_allclose(geo[geo > 0], exact[ref][geo > 0], rtol=0.03)
+    # its confidence is the re-estimate's: times the network's probability (0.25; no calibration here)
+    conf = read_array(ws / "stereo" / "confidence_maps" / f"{ref}.geometric.bin").reshape(geo.shape)
+    assert 0.1 < conf[geo > 0].max() <= 0.25 + 1e-6
     prov = json.loads((ws / "stereo" / "provenance" / f"{ref}.geometric.json").read_text())
     assert prov["reestimated"] is True and prov["settings"]["geom_reestimate"] is True
     # A rerun keeps it; the setting is a geometric one: switching it back recomputes that pass only.
@@ -1005,8 +1008,11 @@ def test_geometric_reestimate_with_a_smaller_network_gives_hints_at_the_network_
 
 def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_path, tiny_checkpoint,
                                                            monkeypatch):
-    """A flat image takes the sparse prior's depth; a network far from the prior loses its confidence."""
+    """A flat image takes the sparse prior's depth; a network far from the prior loses its confidence, and
+    every score is times the local plane's factor."""
+    from colmap_pvs.normals import plane_residual
     from colmap_pvs.prior import upsample_prior
+    from colmap_pvs.stereo.config import PLANE_RESIDUAL_SCALE, PLANE_RESIDUAL_WINDOW
 
     ws = _copy(synthetic_ws, tmp_path)
     real = stereo_photometric.estimate_depth
@@ -1043,7 +1049,15 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
         np.testing.assert_allclose(depth_off[has], 2.0 * depth_on[has], rtol=1e-4)
         # a factor 2 from the prior: exp(-ln 2 / 0.05) ~ 1e-6 of the network's confidence (1)
         assert conf_on[has].max() < 1e-5
-        np.testing.assert_allclose(conf_off[has], 1.0)
+        # without the prior: the network's confidence times the local plane's factor (docs/CONVENTIONS.md)
+        # (where the whole window is valid: the pass drops pixels without a normal after the factor)
+        k = PLANE_RESIDUAL_WINDOW
+        padded = np.pad(depth_off > 0, k // 2)
+        full = np.lib.stride_tricks.sliding_window_view(padded, (k, k)).all(axis=(-1, -2)) & has
+        assert full.mean() > 0.5
+        plane = np.exp(-plane_residual(depth_off, k) / PLANE_RESIDUAL_SCALE)
+        np.testing.assert_allclose(conf_off[full], plane[full], rtol=1e-5)
+        assert plane[full].min() < 0.99  # (the factor is not all ones here)
 
 
 @pytest.mark.parametrize("stage", ["photometric", "geometric"])

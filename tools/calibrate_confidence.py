@@ -14,12 +14,13 @@ Fit (on maps of uncalibrated scores: stereo run with a copy of the checkpoint th
 The geometric scores are made from the photometric probabilities on disk, and the ``filled`` scores
 from the photometric and geometric ones (``READS``), so each is fitted after those it reads: copy
 ``cal1.json`` beside the raw checkpoint as ``raw/pvsnet_default.calibration.json``, rerun stereo (the
-photometric maps are kept, the later ones hold scores) and ``fit --kinds geometric --start cal1.json
---out cal2.json``; then the same with ``cal2.json`` and ``fit --kinds filled --start cal2.json --out
-...``. The result goes beside the checkpoint it was fitted for. ``fit`` reads each map's provenance: it
-refuses calibrated maps, and maps whose score reads maps made with other curves than ``--start``'s;
-refitting a kind drops ``--start``'s curves of the kinds that read it. It records the checkpoint's sha256
-(from the workspaces' stereo run), which ``stereo`` compares with the weights it loads.
+photometric maps are made again with the curve, the later ones hold scores) and ``fit --kinds
+geometric --start cal1.json --out cal2.json``; then the same with ``cal2.json`` and ``fit --kinds
+filled --start cal2.json --out ...``. The result goes beside the checkpoint it was fitted for.
+``fit`` reads each map's provenance: it refuses calibrated maps, maps whose score reads maps made with
+other curves than ``--start``'s, and a kind asked for together with one it reads; refitting a kind
+drops ``--start``'s curves of the kinds that read it. It records the checkpoint's sha256 (from the
+workspaces' stereo run), which ``stereo`` compares with the weights it loads.
 
 Check (calibrated maps against GT, at the tolerance their provenance names: per kind the reliability
 table and the expected calibration error; ``--apply cal.json`` calibrates the scores of raw maps first)::
@@ -160,6 +161,11 @@ def fit(args) -> int:
         raise SystemExit(f"--start {args.start} was fitted at another tolerance ({start['tolerance']})")
     out = {"tolerance": args.tolerance, "curves": dict(start.get("curves", {})),
            "fit": dict(start.get("fit", {}))}
+    for kind in args.kinds:
+        together = sorted(set(READS[kind]) & set(args.kinds))
+        if together:  # its scores were made from raw probabilities of those, not their new curves
+            raise SystemExit(f"fit {kind} after {', '.join(together)}: rerun stereo with the new curve(s) "
+                             f"beside the checkpoint, then fit {kind} with --start")
     for stale in [k for k in KINDS if k in out["curves"] and set(READS[k]) & set(args.kinds)]:
         # its score reads a probability refitted here: its curve is stale with that one's
         print(f"dropping the {stale} curve of --start: refit it after these")
@@ -238,7 +244,9 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--gt", required=True, help="GT folder (relative to each workspace) or 'teacher'")
         q.add_argument("--gt_pattern", default="{stem}")
         q.add_argument("--gt_scale", type=float, default=None)
-        q.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
+        # fit: one kind per round by default (each reads the probabilities of the kinds before it)
+        kinds = ["photometric"] if name == "fit" else list(KINDS)
+        q.add_argument("--kinds", nargs="+", choices=KINDS, default=kinds)
         q.add_argument("--pixels_per_workspace", type=int, default=2_000_000)
     f = sub.choices["fit"]
     f.add_argument("--tolerance", type=float, default=0.05, help="relative depth error counted as right")

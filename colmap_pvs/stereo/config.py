@@ -20,7 +20,7 @@ DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_d
 #: The resolved config of the last run, in ``stereo/``.
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 5, "geometric": 9, "filled": 7, "confirm": 1}
+FORMAT_VERSIONS = {"photometric": 6, "geometric": 9, "filled": 7, "confirm": 1}
 Stage = Literal["photometric", "geometric", "filled", "confirm"]
 #: Largest ``network_scale``: the network on twice the map's size (about 4x its time and memory).
 NETWORK_SCALE_MAX = 2.0
@@ -36,6 +36,11 @@ _RUN = {"run_only": True}
 
 #: Window (map pixels, odd) over which ``prior_blend_texture`` measures the image's texture.
 PRIOR_BLEND_WINDOW = 7
+#: Window (map pixels, odd) of the local plane whose residual lowers the photometric score
+#: (:func:`~colmap_pvs.normals.plane_residual`), and the relative residual at which it falls by ``1 / e``
+#: (``benchmarks/RESULTS.md``, "Depth edges in the network's confidence").
+PLANE_RESIDUAL_WINDOW = 15
+PLANE_RESIDUAL_SCALE = 0.02
 #: Settings that are no longer options but that a pass's maps still depend on, with their value: each
 #: stays in its pass's provenance under its old flag name, before the flag named second (``None``: at
 #: the end), so that the maps made while they were options stay current. Back-compat (dropped in 0.3):

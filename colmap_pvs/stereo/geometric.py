@@ -54,7 +54,8 @@ GEOM_DEVIATION_SCALE = 0.02
 #: in the geometric confidence; one with less counts in proportion.
 GEOM_FULL_PARALLAX = 1.0
 #: Confidence of a geometric pixel that the sources' seeds give (``geom_splat_min_sources``), times the
-#: share of the checked sources that agree on it: below most checked pixels, which are more often right.
+#: share of the checked sources that agree on it and the network's probability at the pixel: below most
+#: checked pixels, which are more often right.
 SPLAT_CONFIDENCE = 0.1
 #: Seed maps computed on demand (for other references' geometric passes) kept in memory per run.
 SEED_CACHE_SIZE = 32
@@ -219,7 +220,8 @@ class Checked:
     confidence ``[H, W]`` (0 where dropped) before the sources' seeds are added, ``reestimated`` when
     they are the check of a re-estimate. Cached in ``ctx.seed_cache`` for other references' passes,
     with the depth and confidence when another reference's geometric pass made it in this run, for its
-    own pass to reuse (``None`` for seeds read from disk or once its own pass has checked it)."""
+    own pass to reuse (``None`` for seeds read from disk, once its own pass has checked it, for an image
+    that is no reference of the run, and for one whose pass re-estimates it)."""
 
     seeds: np.ndarray
     depth: np.ndarray | None = None

@@ -2,8 +2,9 @@
 
 Writes ``stereo/{depth,normal,confidence}_maps/NAME.photometric.bin`` (flat image regions moved
 towards the sparse prior, :mod:`colmap_pvs.prior`; the confidence is the network's score,
-:func:`~colmap_pvs.stereo.network.cascade_confidence`, times its agreement with that prior, calibrated by
-:mod:`colmap_pvs.confidence`) and
+:func:`~colmap_pvs.stereo.network.cascade_confidence`, times its agreement with that prior and a factor
+that falls where the depth departs from a local plane, :func:`~colmap_pvs.normals.plane_residual`,
+calibrated by :mod:`colmap_pvs.confidence`) and
 ``stereo/visibility_maps/NAME.bin`` (the learned per-source visibility, ``[h/4, w/4, S]`` at the
 network size, sources in the provenance file).
 """
@@ -17,7 +18,7 @@ import numpy as np
 from ..errors import ShapeError
 from ..geometry import to_homogeneous
 from ..model.runtime import check_memory_budget
-from ..normals import depth_to_normals
+from ..normals import depth_to_normals, plane_residual
 from ..prior import blend_with_prior, prior_agreement, texture_weight, upsample_prior
 from ..upsampling import (
     guided_upsample_depth,
@@ -26,7 +27,7 @@ from ..upsampling import (
     resize_nearest,
     sample_depth_down,
 )
-from .config import PRIOR_BLEND_WINDOW
+from .config import PLANE_RESIDUAL_SCALE, PLANE_RESIDUAL_WINDOW, PRIOR_BLEND_WINDOW
 from .context import RefOutcome, StereoContext, drop_outlier_hints, image_sparse_depth
 from .network import estimate_depth
 from .outputs import photometric_settings, stale_reason, write_missing_previews, write_pass
@@ -102,6 +103,9 @@ def network_maps(ctx: StereoContext, name: str, sources: list[str], timer: Timer
                 weight = texture_weight(rgb, PRIOR_BLEND_WINDOW, cfg.prior_blend_texture)
                 depth = blend_with_prior(depth, prior, weight)
     with timer.step("confidence"):
+        # depth edges and broken surfaces are where the depth is most often wrong
+        residual = plane_residual(np.where(np.isfinite(depth), depth, 0.0), PLANE_RESIDUAL_WINDOW)
+        conf = conf * np.exp(-residual / PLANE_RESIDUAL_SCALE)
         # the score as P(depth within the tolerance)
         conf = ctx.calibration.apply("photometric", conf, np.isfinite(depth) & (depth > 0))
         depth = np.where((conf >= cfg.min_confidence) & np.isfinite(depth), depth, 0.0).astype(np.float32)
