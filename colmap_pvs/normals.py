@@ -133,15 +133,19 @@ def plane_residual(depth: np.ndarray, window: int) -> np.ndarray:
     u -= w / 2.0  # centred coordinates: smaller sums, less cancellation
     v -= h / 2.0
 
-    def mean(a):  # over the valid pixels of each window (sums of zero-padded products, over the count)
+    def total(a):  # the sum over the valid pixels of each window (zero outside the image)
         return cv2.boxFilter(a * weight, cv2.CV_64F, (window, window), normalize=False,
                              borderType=cv2.BORDER_CONSTANT)
 
-    n = mean(np.ones_like(z))
+    n = total(np.ones_like(z))
     m = np.maximum(n, 1.0)
-    mu, mv, mz = mean(u) / m, mean(v) / m, mean(z) / m
-    cuu, cvv, cuv = mean(u * u) / m - mu * mu, mean(v * v) / m - mv * mv, mean(u * v) / m - mu * mv
-    cuz, cvz, czz = mean(u * z) / m - mu * mz, mean(v * z) / m - mv * mz, mean(z * z) / m - mz * mz
+
+    def mean(a):
+        return total(a) / m
+
+    mu, mv, mz = mean(u), mean(v), mean(z)
+    cuu, cvv, cuv = mean(u * u) - mu * mu, mean(v * v) - mv * mv, mean(u * v) - mu * mv
+    cuz, cvz, czz = mean(u * z) - mu * mz, mean(v * z) - mv * mz, mean(z * z) - mz * mz
     det = cuu * cvv - cuv * cuv
     ok = valid & (n >= 3) & (det > 1e-9)
     det = np.where(ok, det, 1.0)

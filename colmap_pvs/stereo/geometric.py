@@ -286,8 +286,10 @@ def _check_photometric(ctx: StereoContext, name: str, setup: CheckSetup, kept: b
     ref, srcs, vis = _load_check(ctx, name, setup)
     check = _check_kwargs(ctx)
     res = check_consistency(ref.depth, ref.normals, ref.K, ref.cam_from_world, srcs, vis, **check)
-    network = _network_probability(ctx, name, ref.depth.shape) if kept else None
-    depth, conf = _kept(ctx, name, setup.sources, ref, res, vis, network) if kept else (None, None)
+    depth = conf = None
+    if kept:
+        network = _network_probability(ctx, name, ref.depth.shape)
+        depth, conf = _kept(ctx, name, setup.sources, ref, res, vis, network)
     return Checked(_seeds(ctx.config, ref, res), depth, conf)
 
 
