@@ -4,9 +4,10 @@ Each pass first scores its pixels (the photometric pass by its cascade's probabi
 agreement, by its agreement with the sparse prior and by how well a local plane fits its depth; the
 geometric pass by the visibility- and parallax-weighted share of confirming sources, the deviation from
 the local plane and the network's probability; the completion by how a pixel was made, times the
-network's probability; ``docs/CONVENTIONS.md``). A score ranks the pixels of its own kind but means
-nothing across kinds. A :class:`Calibration` turns the score of each kind into
-``P(|d - d_true| <= tolerance * d_true)`` (``tolerance`` 5 %) by a monotone piecewise-linear curve
+network's probability and how well a local plane fits the completed depth; ``docs/CONVENTIONS.md``).
+A score ranks the pixels of its own kind but means nothing across kinds. A :class:`Calibration`
+turns the score of each kind into ``P(|d - d_true| <= tolerance * d_true)`` (``tolerance`` 5 %) by a
+monotone piecewise-linear curve
 fitted on pixels with known depth (``tools/calibrate_confidence.py``), so a threshold means the same in
 every map and ``evaluate depth`` can check it (:func:`reliability`). The scores depend on the network,
 so a calibration belongs to a checkpoint: ``NAME.calibration.json`` beside ``NAME.pt``

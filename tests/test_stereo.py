@@ -31,6 +31,7 @@ from colmap_pvs.io.maps import (
 from colmap_pvs.io.ply import read_point_cloud
 from colmap_pvs.io.sparse import read_sparse_model, write_sparse_model
 from colmap_pvs.io.workspace import load_workspace, read_fusion_cfg, write_patch_match_cfg
+from colmap_pvs.normals import plane_residual
 from colmap_pvs.stereo import context as stereo_context
 from colmap_pvs.stereo import filled as stereo_filled
 from colmap_pvs.stereo import geometric as stereo_geometric
@@ -38,6 +39,7 @@ from colmap_pvs.stereo import network as stereo_network
 from colmap_pvs.stereo import outputs as stereo_outputs
 from colmap_pvs.stereo import photometric as stereo_photometric
 from colmap_pvs.stereo import run_stereo
+from colmap_pvs.stereo.config import COMPLETION_RESIDUAL_SCALE, COMPLETION_RESIDUAL_WINDOW
 from colmap_pvs.stereo.reference import PassMaps, PassRecord, Reference, preview_path
 from colmap_pvs.stereo.timing import Timer
 from colmap_pvs.synthetic.workspace import SyntheticWorkspaceConfig, make_synthetic_workspace
@@ -405,7 +407,11 @@ def test_geometric_pass_removes_inconsistent_pixels(analytic_scene, tmp_path, ti
     truth = photo[40:70, 60:100] / 1.1
     fitted_error = np.median(np.abs(filled[40:70, 60:100] / truth - 1))
     assert fitted_error < 0.07
-    assert filled_conf[seeds].min() > filled_conf[~seeds].max()
+    # the tiers rank the seeds first; the local plane's factor then lowers the box's depth edges
+    factor = np.exp(-plane_residual(filled, COMPLETION_RESIDUAL_WINDOW) / COMPLETION_RESIDUAL_SCALE)
+    tiers = filled_conf / factor
+    assert tiers[seeds].min() > tiers[~seeds].max()
+    assert filled_conf[seeds & (factor > 0.99)].min() > filled_conf[~seeds].max()
     # With the other views' geometric maps, the block takes their kept depths (exact maps).
     for name in analytic_scene["names"][1:]:
         assert stereo_module.process_reference(ctx, name, "geometric").status == "computed"
@@ -1010,7 +1016,6 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
                                                            monkeypatch):
     """A flat image takes the sparse prior's depth; a network far from the prior loses its confidence, and
     every score is times the local plane's factor."""
-    from colmap_pvs.normals import plane_residual
     from colmap_pvs.prior import upsample_prior
     from colmap_pvs.stereo.config import PLANE_RESIDUAL_SCALE, PLANE_RESIDUAL_WINDOW
 
@@ -1058,6 +1063,36 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
         plane = np.exp(-plane_residual(depth_off, k) / PLANE_RESIDUAL_SCALE)
         np.testing.assert_allclose(conf_off[full], plane[full], rtol=1e-5)
         assert plane[full].min() < 0.99  # (the factor is not all ones here)
+
+
+def test_completion_score_falls_where_its_depth_leaves_a_local_plane(synthetic_ws, tmp_path, tiny_checkpoint,
+                                                                     monkeypatch):
+    """The completion's score is its tiers' times the local plane's factor of the completed depth."""
+
+    def completions(factor: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        ws = _copy(synthetic_ws, tmp_path / ("on" if factor else "off"))
+        if not factor:
+            monkeypatch.setattr(stereo_filled, "COMPLETION_RESIDUAL_SCALE", float("inf"))
+        cfg = stereo_config(workspace_path=ws, checkpoint=tiny_checkpoint, num_views=3, max_image_size=64,
+                           min_confidence=0.0)
+        names = sorted(run_stereo(cfg).filled_processed)
+        ws_obj, _ = load_workspace(ws)
+        return {n: (read_depth_map(ws_obj.depth_map_path(n, "filled")),
+                    read_array(ws_obj.confidence_map_path(n, "filled"))) for n in names}
+
+    on, off = completions(True), completions(False)
+    assert sorted(on) == sorted(off) and len(on) >= 3
+    lowered = supported = 0
+    for name, (depth, conf) in on.items():
+        depth_off, conf_off = off[name]
+        np.testing.assert_array_equal(depth, depth_off)  # the depth is the same: only the score changes
+        factor = np.exp(-plane_residual(depth, COMPLETION_RESIDUAL_WINDOW) / COMPLETION_RESIDUAL_SCALE)
+        has = conf_off > 0  # the supported pixels (0 marks the others in both)
+        np.testing.assert_array_equal(conf > 0, has)
+        np.testing.assert_allclose(conf[has], (conf_off * factor)[has], rtol=1e-5, atol=1e-9)
+        supported += int(has.sum())
+        lowered += int((factor[has] < 0.99).sum())
+    assert supported > 200 and lowered > 0, (supported, lowered)  # (the factor is not all ones here)
 
 
 @pytest.mark.parametrize("stage", ["photometric", "geometric"])

@@ -20,7 +20,7 @@ DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "weights" / "pvsnet_d
 #: The resolved config of the last run, in ``stereo/``.
 CONFIG_FILENAME = "colmap_pvs_stereo.json"
 #: Bumped when a pass's output changes for the same settings (part of its provenance fingerprint).
-FORMAT_VERSIONS = {"photometric": 6, "geometric": 9, "filled": 7, "confirm": 1}
+FORMAT_VERSIONS = {"photometric": 6, "geometric": 9, "filled": 8, "confirm": 1}
 Stage = Literal["photometric", "geometric", "filled", "confirm"]
 #: Largest ``network_scale``: the network on twice the map's size (about 4x its time and memory).
 NETWORK_SCALE_MAX = 2.0
@@ -41,6 +41,10 @@ PRIOR_BLEND_WINDOW = 7
 #: (``benchmarks/RESULTS.md``, "Depth edges in the network's confidence").
 PLANE_RESIDUAL_WINDOW = 15
 PLANE_RESIDUAL_SCALE = 0.02
+#: The same for the completion's score, on the completed depth (``benchmarks/RESULTS.md``, "Depth edges in
+#: the completion's confidence").
+COMPLETION_RESIDUAL_WINDOW = 21
+COMPLETION_RESIDUAL_SCALE = 0.05
 #: Settings that are no longer options but that a pass's maps still depend on, with their value: each
 #: stays in its pass's provenance under its old flag name, before the flag named second (``None``: at
 #: the end), so that the maps made while they were options stay current. Back-compat (dropped in 0.3):

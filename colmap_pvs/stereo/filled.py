@@ -19,6 +19,8 @@ from ..completion import (
 )
 from ..errors import MapFormatError
 from ..io.maps import read_depth_map
+from ..normals import plane_residual
+from .config import COMPLETION_RESIDUAL_SCALE, COMPLETION_RESIDUAL_WINDOW
 from .context import RefOutcome, StereoContext
 from .geometric import load_maps
 from .outputs import (
@@ -130,8 +132,11 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
         fitted = ~kept & ~splatted & ~segmented
         unsupported = refused | (fitted & (fit_support(known) < FIT_MIN_SUPPORT))
         depth = np.where(unsupported, photo, depth).astype(np.float32)
-        conf = ctx.calibration.apply("filled", completed_confidence(
-            kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers), depth > 0)
+        score = completed_confidence(
+            kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers)
+        # a completed depth that leaves its local plane (a depth edge, a broken surface) is more often wrong
+        score *= np.exp(-plane_residual(depth, COMPLETION_RESIDUAL_WINDOW) / COMPLETION_RESIDUAL_SCALE)
+        conf = ctx.calibration.apply("filled", score, depth > 0)
         conf = np.where(unsupported, 0.0, conf).astype(np.float32)
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
              "geometric_fraction": float(geometric_kept.mean()),
