@@ -889,6 +889,18 @@ def test_confirmation_adds_the_agreed_completion_to_the_geometric_maps_and_takes
     assert not (ws / "stereo" / "provenance" / f"{ref}.confirm.json").exists()
 
 
+def test_one_view_confirms_only_a_confident_completed_pixel():
+    from colmap_pvs.stereo.confirm import CONFIRM_MIN_VIEWS, CONFIRM_ONE_VIEW_CONFIDENCE, confirmed
+
+    agreeing = np.array([[0, 1, 1, 1], [2, 2, 3, 0]])
+    c = CONFIRM_ONE_VIEW_CONFIDENCE
+    below = np.nextafter(np.float32(c), np.float32(0))
+    confidence = np.array([[1.0, c, below, 0.0], [0.0, 1.0, 0.2, 1.0]], np.float32)
+    assert CONFIRM_MIN_VIEWS == 2 and 0.5 < c < 0.9
+    np.testing.assert_array_equal(confirmed(agreeing, confidence), [[False, True, False, False],
+                                                                    [True, True, True, False]])
+
+
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,
                                                                      monkeypatch):
     ws = _copy(synthetic_ws, tmp_path)

@@ -2,7 +2,8 @@
 
 A completed pixel (:mod:`colmap_pvs.stereo.filled`) that other references' completions agree with, as
 ``fuse`` checks them (:data:`CONFIRM_MIN_VIEWS` views within :data:`CONFIRM_MAX_REPROJ_ERROR` px
-forward-backward and :data:`CONFIRM_MAX_DEPTH_ERROR` in depth), joins the geometric maps, which is
+forward-backward and :data:`CONFIRM_MAX_DEPTH_ERROR` in depth; one view for a pixel whose confidence
+is at least :data:`CONFIRM_ONE_VIEW_CONFIDENCE`), joins the geometric maps, which is
 what COLMAP's own ``stereo_fusion`` reads, so its cloud and mesh gain the surfaces only the completion
 covers (``benchmarks/RESULTS.md``, "The confirmed completion joins the geometric maps"). Such a pixel takes
 the completion's depth, a normal fitted to it and the completion's confidence.
@@ -31,11 +32,22 @@ from .outputs import change_reason, fingerprint, pure_geometric, remove_confirme
 from .reference import Reference, read_json
 from .timing import Timer
 
-#: Other references whose completions must agree with a completed pixel (``fuse``'s default).
+#: Other references whose completions must agree with a completed pixel (``fuse``'s default) ...
 CONFIRM_MIN_VIEWS = 2
+#: ... or one, where the pixel's confidence is at least this (``benchmarks/RESULTS.md``, "One confirming
+#: view for a confident completed pixel").
+CONFIRM_ONE_VIEW_CONFIDENCE = 0.7
 #: Forward-backward reprojection error (map pixels) and relative depth error of that agreement.
 CONFIRM_MAX_REPROJ_ERROR = 1.0
 CONFIRM_MAX_DEPTH_ERROR = 0.01
+
+
+def confirmed(agreeing: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+    """``[H, W]`` bool: the completed pixels that the confirmation adds, given how many other
+    references' completions agree with each (``agreeing`` ``[H, W]`` int) and its confidence
+    ``[H, W]``: :data:`CONFIRM_MIN_VIEWS` agreeing views, or one where the confidence is at least
+    :data:`CONFIRM_ONE_VIEW_CONFIDENCE`."""
+    return (agreeing >= CONFIRM_MIN_VIEWS) | ((agreeing >= 1) & (confidence >= CONFIRM_ONE_VIEW_CONFIDENCE))
 
 
 def _supported_completion(ctx: StereoContext, ref: Reference) -> tuple[SourceMaps, np.ndarray]:
@@ -70,6 +82,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
                 and prov.get("settings", {}).get("reference") == geometric.get("fingerprint")):
             sources[s] = prov["fingerprint"]
     settings = {"format_version": FORMAT_VERSIONS["confirm"], "min_views": CONFIRM_MIN_VIEWS,
+                "one_view_confidence": CONFIRM_ONE_VIEW_CONFIDENCE,
                 "max_reproj_error": CONFIRM_MAX_REPROJ_ERROR, "max_depth_error": CONFIRM_MAX_DEPTH_ERROR,
                 "geometric": geo["fingerprint"], "filled": filled["fingerprint"], "sources": sources}
     paths = this.paths
@@ -101,7 +114,7 @@ def confirm_pass(ctx: StereoContext, name: str) -> RefOutcome:
             res = check_consistency(candidates, None, ref.K, ref.cam_from_world, srcs,
                                     max_reproj_error=CONFIRM_MAX_REPROJ_ERROR,
                                     max_depth_error=CONFIRM_MAX_DEPTH_ERROR, workers=2)
-            added = (candidates > 0) & (res.agree.sum(0) >= CONFIRM_MIN_VIEWS)
+            added = (candidates > 0) & confirmed(res.agree.sum(0), fconf)
         fitted = fit_normals(supported, ref.K)
         added &= np.any(fitted != 0, axis=-1)
     with timer.step("writes"):
