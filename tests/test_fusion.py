@@ -302,6 +302,35 @@ def test_fuse_defaults_to_the_completion_and_never_fuses_its_unsupported_pixels(
     assert fallback.num_points == geometric.num_points and names[0] not in fallback.skipped
 
 
+def test_fuse_leaves_out_completed_pixels_more_likely_wrong_than_right(workspace, analytic_scene, tmp_path):
+    """A calibrated completion's pixels below ``FILLED_MIN_PROBABILITY`` are not fused; an uncalibrated
+    completion's scores are no probabilities, so only its unsupported pixels (0) are left out."""
+    from colmap_pvs.fusion.pvs import FILLED_MIN_PROBABILITY
+
+    assert FILLED_MIN_PROBABILITY == 0.5  # docs/CONVENTIONS.md
+    names = analytic_scene["names"]
+    maps, provenance = workspace / "stereo" / "depth_maps", workspace / "stereo" / "provenance"
+    provenance.mkdir(exist_ok=True)
+    for name in names:
+        shutil.copy(maps / f"{name}.geometric.bin", maps / f"{name}.filled.bin")
+        h, w = read_depth_map(maps / f"{name}.filled.bin").shape
+        conf = np.full((h, w), 0.6, np.float32)
+        conf[:, : w // 2] = np.nextafter(np.float32(FILLED_MIN_PROBABILITY), np.float32(0))
+        write_array(workspace / "stereo" / "confidence_maps" / f"{name}.filled.bin", conf)
+
+    def fused(calibration: dict | None) -> int:
+        for name in names:
+            settings = {"format_version": FORMAT_VERSIONS["filled"], "confidence_calibration": calibration}
+            (provenance / f"{name}.filled.json").write_text(json.dumps({"settings": settings}))
+        out = tmp_path / f"{calibration is not None}.ply"
+        return fuse(FuseConfig(workspace_path=workspace, output_path=out)).num_points
+
+    raw, calibrated = fused(None), fused({"tolerance": 0.05})
+    assert 0.2 * raw < calibrated < 0.8 * raw  # the left half, below the floor, is left out
+    with pytest.raises(WorkspaceError, match="made no points"):  # a min_confidence above it applies as before
+        fuse(FuseConfig(workspace_path=workspace, output_path=tmp_path / "above.ply", min_confidence=0.7))
+
+
 def test_fusing_the_completion_counts_the_geometric_check_as_one_agreeing_view(workspace, analytic_scene):
     """A completed pixel that holds the geometric map's depth needs ``min_consistent_views - 1`` agreeing
     sources, any other needs them all; a checked pixel no source agrees with is still dropped."""

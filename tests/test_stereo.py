@@ -896,9 +896,34 @@ def test_one_view_confirms_only_a_confident_completed_pixel():
     c = CONFIRM_ONE_VIEW_CONFIDENCE
     below = np.nextafter(np.float32(c), np.float32(0))
     confidence = np.array([[1.0, c, below, 0.0], [0.0, 1.0, 0.2, 1.0]], np.float32)
-    assert CONFIRM_MIN_VIEWS == 2 and 0.5 < c < 0.9
+    assert CONFIRM_MIN_VIEWS == 2 and c == 0.7  # docs/CONVENTIONS.md
     np.testing.assert_array_equal(confirmed(agreeing, confidence), [[False, True, False, False],
                                                                     [True, True, True, False]])
+
+
+def test_confirmation_with_one_other_completion_adds_only_confident_pixels(analytic_scene, tmp_path,
+                                                                          tiny_checkpoint, monkeypatch):
+    """With one other completion to check against, the pass adds a pixel only through the one-view rule:
+    nothing where no confidence reaches its threshold, and only pixels at or above it otherwise."""
+    from colmap_pvs.stereo import confirm as stereo_confirm
+
+    ws, cfg, _ = _exact_photometric_maps(analytic_scene, tmp_path, tiny_checkpoint, 1.1)
+    fresh = shutil.copytree(ws, tmp_path / "fresh")
+    cfg = replace_config(cfg, geom_consistency=True, geom_splat_min_sources=0,
+                         geom_min_triangulation_angle=20, geom_num_sources=1)
+    ref = analytic_scene["names"][0]
+
+    def added(workspace: Path, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+        monkeypatch.setattr(stereo_confirm, "CONFIRM_ONE_VIEW_CONFIDENCE", threshold)
+        run_stereo(replace_config(cfg, workspace_path=workspace))
+        conf = read_array(workspace / "stereo" / "confidence_maps" / f"{ref}.filled.bin").reshape(120, 160)
+        return read_depth_map(workspace / "stereo" / "confirm_maps" / f"{ref}.bin") > 0, conf
+
+    none, conf = added(ws, 2.0)  # no confidence reaches 2: one view confirms nothing
+    assert not none.any()
+    level = float(np.median(conf[conf > 0]))  # (the completion is the same in both runs)
+    some, conf = added(fresh, level)
+    assert some.sum() > 100 and conf[some].min() >= level
 
 
 def test_network_scale_runs_the_network_smaller_and_writes_map_size(synthetic_ws, tmp_path, tiny_checkpoint,
@@ -1080,6 +1105,7 @@ def test_prior_blend_and_agreement_in_the_photometric_pass(synthetic_ws, tmp_pat
 def test_completion_score_falls_where_its_depth_leaves_a_local_plane(synthetic_ws, tmp_path, tiny_checkpoint,
                                                                      monkeypatch):
     """The completion's score is its tiers' times the local plane's factor of the completed depth."""
+    assert (COMPLETION_RESIDUAL_WINDOW, COMPLETION_RESIDUAL_SCALE) == (21, 0.05)  # docs/CONVENTIONS.md
 
     def completions(factor: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         ws = _copy(synthetic_ws, tmp_path / ("on" if factor else "off"))

@@ -6,6 +6,7 @@ those points are added to; :func:`fuse_pvs` runs them in that order."""
 from __future__ import annotations
 
 import functools
+import json
 import logging
 from collections import Counter, OrderedDict
 from collections.abc import Callable
@@ -35,6 +36,11 @@ __all__ = ["PointCloud", "fuse_pvs"]
 
 # Threads that check one reference's sources (both cores; a third, the prefetch, mostly waits on reads).
 MATCH_THREADS = 2
+#: A completed pixel is fused only where its calibrated confidence is at least this: where it is more
+#: likely right than wrong (``benchmarks/RESULTS.md``, "One confirming view for a confident completed
+#: pixel"). An uncalibrated score (a checkpoint without a calibration) is no probability: there only the
+#: unsupported pixels (0) are left out.
+FILLED_MIN_PROBABILITY = 0.5
 
 # --------------------------------------------------------------------------- pvs fusion: the views
 
@@ -58,6 +64,16 @@ class _View(SourceMaps):
     @property
     def t(self) -> np.ndarray:
         return self.cam_from_world[:, 3]
+
+
+def _calibrated(ws: Workspace, name: str) -> bool:
+    """Whether ``name``'s completion holds calibrated probabilities (its provenance names a
+    calibration); ``False`` without a readable provenance."""
+    try:
+        settings = json.loads((ws.stereo_dir / "provenance" / f"{name}.filled.json").read_text())["settings"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return isinstance(settings, dict) and bool(settings.get("confidence_calibration"))
 
 
 def _load_view(config: FuseConfig, ws: Workspace, model: SparseModel, name: str) -> _View:
@@ -97,7 +113,9 @@ def _load_view(config: FuseConfig, ws: Workspace, model: SparseModel, name: str)
         if conf.shape[:2] != (h, w):
             raise MapFormatError(f"confidence map {str(conf_path)!r} is not {w}x{h}")
         conf = conf.reshape(h, w)
-        depth[~(conf >= config.min_confidence) | (filled & ~(conf > 0))] = 0.0
+        floor = FILLED_MIN_PROBABILITY if filled and _calibrated(ws, name) else 0.0
+        least = max(config.min_confidence, floor)
+        depth[~(conf >= least) | (filled & ~(conf > 0))] = 0.0
     checked = None  # completed pixels that hold the depth the geometric map checked
     geometric_path = ws.depth_map_path(name, "geometric")
     if filled and geometric_path.is_file():

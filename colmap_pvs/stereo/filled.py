@@ -134,8 +134,10 @@ def filled_pass(ctx: StereoContext, name: str) -> RefOutcome:
         depth = np.where(unsupported, photo, depth).astype(np.float32)
         score = completed_confidence(
             kept, splatted, geo_conf, photo_conf, support / max(1, len(srcs)), segmented, inliers)
-        # a completed depth that leaves its local plane (a depth edge, a broken surface) is more often wrong
-        score *= np.exp(-plane_residual(depth, COMPLETION_RESIDUAL_WINDOW) / COMPLETION_RESIDUAL_SCALE)
+        # a completed depth that leaves its local plane (a depth edge, a broken surface) is more often
+        # wrong; the floor keeps a supported pixel's score positive (0 marks the unsupported ones)
+        score = np.maximum(score * np.exp(-plane_residual(depth, COMPLETION_RESIDUAL_WINDOW)
+                                          / COMPLETION_RESIDUAL_SCALE), np.float32(1e-6))
         conf = ctx.calibration.apply("filled", score, depth > 0)
         conf = np.where(unsupported, 0.0, conf).astype(np.float32)
     extra = {"image_size": [w, h], "sources": list(source_prov), "kept_fraction": float(kept.mean()),
