@@ -18,7 +18,7 @@ import pytest
 from colmap_pvs.errors import ConfigError, WorkspaceError
 from colmap_pvs.fusion import FuseConfig, fuse, parse_colmap_options
 from colmap_pvs.io import read_depth_map, read_sparse_model, write_depth_map, write_normal_map
-from colmap_pvs.io.maps import fusion_intrinsics, write_array
+from colmap_pvs.io.maps import fusion_intrinsics, read_array, write_array
 from colmap_pvs.io.ply import (
     read_mesh,
     read_point_cloud,
@@ -327,6 +327,11 @@ def test_fuse_leaves_out_completed_pixels_more_likely_wrong_than_right(workspace
 
     raw, calibrated = fused(None), fused({"tolerance": 0.05})
     assert 0.2 * raw < calibrated < 0.8 * raw  # the left half, below the floor, is left out
+    for name in names:  # at the floor itself: kept
+        conf = read_array(workspace / "stereo" / "confidence_maps" / f"{name}.filled.bin").copy()
+        conf[conf < FILLED_MIN_PROBABILITY] = FILLED_MIN_PROBABILITY
+        write_array(workspace / "stereo" / "confidence_maps" / f"{name}.filled.bin", conf)
+    assert fused({"tolerance": 0.05}) == raw
     with pytest.raises(WorkspaceError, match="made no points"):  # a min_confidence above it applies as before
         fuse(FuseConfig(workspace_path=workspace, output_path=tmp_path / "above.ply", min_confidence=0.7))
 

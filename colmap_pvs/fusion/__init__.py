@@ -38,7 +38,8 @@ Two methods:
 Input (``input_type``): ``geometric`` or ``photometric`` maps (depth, normals, confidence), or for
 ``pvs`` the dense completion ``filled`` (no normal map: the normals are fitted to its depth,
 :func:`colmap_pvs.normals.fit_normals`; its pixels of confidence 0, where nothing supported a
-completed depth, are never fused; a pixel that holds its geometric map's depth, within
+completed depth, are never fused, nor, in a calibrated completion, those below
+``pvs.FILLED_MIN_PROBABILITY`` (0.5); a pixel that holds its geometric map's depth, within
 ``max_depth_error``, counts that check as one agreeing view). ``auto`` (the default) is ``geometric``
 for ``colmap``, and for
 ``pvs`` ``filled`` where every listed image with geometric maps has a completion (else ``geometric``,

@@ -56,7 +56,7 @@ class FuseConfig:
         default=0.0,
         metadata={
             "help": "pvs: drop pixels whose confidence (P(within 5 %)) is below this, where confidence "
-                    "maps exist"
+                    "maps exist (a calibrated completion's pixels below 0.5 are always dropped)"
         },
     )
     deduplicate: bool = field(
