@@ -37,6 +37,7 @@ from typing import Literal
 from .confidence import calibration_path, load_calibration
 from .config import check_threads, config_json_bytes, config_to_dict, replace_config
 from .errors import ConfigError, WorkspaceError
+from .fusion.config import FUSION_RULES
 from .io.cleanup import remove_orphan_temps
 from .io.files import atomic_write_bytes, cached_file_hashes, file_sha256, files_state_sha256, remove_database
 from .io.images import check_image_file, check_image_format
@@ -66,7 +67,7 @@ STAGE_SETTINGS: dict[str, tuple[str, ...]] = {
     "undistort": ("photos", "input_path", "undistort_max_image_size"),
     # every stereo setting that changes the maps, and the weights by their content, wherever they are
     "stereo": ("stereo", "checkpoint_sha256", "calibration_sha256", "stereo_formats"),
-    "fusion": ("fusion_method",),
+    "fusion": ("fusion_method", "fusion_rules"),
     "mesh": ("mesh", "mesh_depth"),
 }
 _IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm"}
@@ -293,6 +294,7 @@ def _current_settings(config: ReconstructConfig, photos: dict[str, list],
         "stereo": map_settings(config.stereo),  # a run-only flag (threads, Ray, previews) resumes
         # the maps' formats: a new colmap-pvs may write some pass differently (the stereo step resumes)
         "stereo_formats": dict(FORMAT_VERSIONS),
+        "fusion_rules": FUSION_RULES,  # likewise: a cloud of other rules is fused again
     }
     return {stage: {key: values[key] for key in keys} for stage, keys in STAGE_SETTINGS.items()}
 
@@ -313,7 +315,7 @@ def _describe_change(key: str, old, new) -> str:
 def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) -> None:
     """Refuse (or, with ``overwrite``, schedule the recomputation of) stages made with other settings."""
     changes: list[tuple[str, str]] = []  # (stage, description)
-    formats_changed = False
+    formats_changed = rules_changed = False
     for stage in STAGES:
         recorded = prog.recorded(stage)
         if recorded is None:
@@ -332,6 +334,9 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
             elif key == "stereo_formats":  # not a setting: stereo resumes (redoing what changed)
                 if old != new:
                     formats_changed = True
+                continue
+            elif key == "fusion_rules":  # not a setting either: fusion and mesh are made again
+                rules_changed |= old != new
                 continue
             else:
                 differs = key in recorded and old != new
@@ -354,6 +359,10 @@ def _check_provenance(config: ReconstructConfig, prog: _Progress, root: Path) ->
         logger.info("reconstruct: the depth maps are from an older colmap-pvs: resuming stereo (it "
                     "recomputes the passes whose format changed), then fusion and mesh")
         prog.unmark("stereo", "fusion", "mesh")
+        return
+    elif rules_changed:
+        logger.info("reconstruct: the cloud was fused by an older colmap-pvs: fusing and meshing again")
+        prog.unmark("fusion", "mesh")
         return
     else:
         return

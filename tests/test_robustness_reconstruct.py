@@ -19,6 +19,7 @@ from scenes import reconstruct_config, stereo_config
 
 from colmap_pvs.cli.main import main
 from colmap_pvs.errors import ConfigError, WorkspaceError
+from colmap_pvs.fusion.config import FUSION_RULES
 from colmap_pvs.io.maps import read_depth_map
 from colmap_pvs.reconstruct import reconstruct
 from colmap_pvs.stereo.config import FORMAT_VERSIONS
@@ -311,6 +312,19 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
         stereo.write_text(json.dumps(payload))
         again = reconstruct(reconstruct_config(**flags))
         assert "undistort" in again.resumed and not {"stereo", "fusion", "mesh"} & set(again.resumed)
+    assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
+    # a cloud fused under older rules of fuse (or none recorded): fusion and mesh again, stereo resumes
+    fusion = out / ".colmap_pvs" / "fusion.done"
+    for rules in (FUSION_RULES - 1, None):
+        payload = json.loads(fusion.read_text())
+        assert payload["settings"]["fusion_rules"] == FUSION_RULES
+        if rules is None:
+            del payload["settings"]["fusion_rules"]
+        else:
+            payload["settings"]["fusion_rules"] = rules
+        fusion.write_text(json.dumps(payload))
+        again = reconstruct(reconstruct_config(**flags))
+        assert "stereo" in again.resumed and not {"fusion", "mesh"} & set(again.resumed)
     assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
     (tmp_path / "tiny.calibration.json").write_text(json.dumps(
         {"tolerance": 0.05, "curves": {"photometric": {"score": [0, 1], "prob": [0.2, 0.6]}}}))

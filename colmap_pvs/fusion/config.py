@@ -15,6 +15,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["CONFIG_SUFFIX", "DEFAULT_OUTPUT_NAME", "FuseConfig", "FuseResult"]
 
 DEFAULT_OUTPUT_NAME = "fused.ply"
+#: Version of ``fuse``'s rules for which pixels a cloud holds, raised when one changes: ``reconstruct``
+#: fuses a cloud made under other rules again.
+FUSION_RULES = 2
 CONFIG_SUFFIX = ".fuse_config.json"
 
 @dataclass(frozen=True)
