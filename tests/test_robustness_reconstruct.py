@@ -277,6 +277,18 @@ def test_previews_asked_for_on_a_finished_reconstruction_are_written_without_rec
     assert not changed, changed
 
 
+def _record_older(marker: Path, key: str, current, older) -> None:
+    """Make a stage marker that records ``current`` under ``key`` look written by an older colmap-pvs:
+    ``older`` in its place, or (``None``) no such record."""
+    payload = json.loads(marker.read_text())
+    assert payload["settings"][key] == current
+    if older is None:
+        del payload["settings"][key]
+    else:
+        payload["settings"][key] = older
+    marker.write_text(json.dumps(payload))
+
+
 def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checked(analytic_scene, tmp_path):
     """Flags that change no map (threads, device, backend, the Ray settings, previews) resume a finished
     run; a marker of an older colmap-pvs (flat stereo settings) is still compared with the new ones."""
@@ -303,26 +315,14 @@ def test_run_only_stereo_flags_resume_and_an_older_stereo_record_is_still_checke
     # what changed, then fusion and mesh; nothing is refused
     stereo = out / ".colmap_pvs" / "stereo.done"
     for formats in ({**FORMAT_VERSIONS, "filled": FORMAT_VERSIONS["filled"] - 1}, None):
-        payload = json.loads(stereo.read_text())
-        assert payload["settings"]["stereo_formats"] == FORMAT_VERSIONS
-        if formats is None:
-            del payload["settings"]["stereo_formats"]
-        else:
-            payload["settings"]["stereo_formats"] = formats
-        stereo.write_text(json.dumps(payload))
+        _record_older(stereo, "stereo_formats", FORMAT_VERSIONS, formats)
         again = reconstruct(reconstruct_config(**flags))
         assert "undistort" in again.resumed and not {"stereo", "fusion", "mesh"} & set(again.resumed)
     assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)
     # a cloud fused under older rules of fuse (or none recorded): fusion and mesh again, stereo resumes
     fusion = out / ".colmap_pvs" / "fusion.done"
     for rules in (FUSION_RULES - 1, None):
-        payload = json.loads(fusion.read_text())
-        assert payload["settings"]["fusion_rules"] == FUSION_RULES
-        if rules is None:
-            del payload["settings"]["fusion_rules"]
-        else:
-            payload["settings"]["fusion_rules"] = rules
-        fusion.write_text(json.dumps(payload))
+        _record_older(fusion, "fusion_rules", FUSION_RULES, rules)
         again = reconstruct(reconstruct_config(**flags))
         assert "stereo" in again.resumed and not {"fusion", "mesh"} & set(again.resumed)
     assert {"stereo", "fusion", "mesh"} <= set(reconstruct(reconstruct_config(**flags)).resumed)

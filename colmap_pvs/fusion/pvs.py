@@ -6,7 +6,6 @@ those points are added to; :func:`fuse_pvs` runs them in that order."""
 from __future__ import annotations
 
 import functools
-import json
 import logging
 from collections import Counter, OrderedDict
 from collections.abc import Callable
@@ -69,10 +68,10 @@ class _View(SourceMaps):
 def _calibrated(ws: Workspace, name: str) -> bool:
     """Whether ``name``'s completion holds calibrated probabilities (its provenance names a
     calibration); ``False`` without a readable provenance."""
-    try:
-        settings = json.loads((ws.stereo_dir / "provenance" / f"{name}.filled.json").read_text())["settings"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
+    from ..stereo.outputs import read_provenance  # imported where used, as by fuse's input choice
+
+    record = read_provenance(ws, name, "filled")
+    settings = record.get("settings") if isinstance(record, dict) else None
     return isinstance(settings, dict) and bool(settings.get("confidence_calibration"))
 
 
