@@ -10,6 +10,10 @@ structures (``evaluate.thin_structure_mask``) and coverage / AbsRel after the st
 filter. ``--families plant`` draws the held-out scenes from other families (stop 31: the plant's fronds)::
 
     python benchmarks/synthetic_val.py --checkpoint runs/x/model.pt --families plant --as_trained_only
+
+``--classes`` adds, per variant, the % within 5 % of the classes of ``blind_spots.py`` (issue 56: outside
+the sample's own depth range, slanted, low texture, thin; the same masks and thresholds as on
+``hololens-dev``) and each class's share of the pixels, to compare the renders with the real frames.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import time
 
 import numpy as np
 import torch
+from blind_spots import CLASSES, WITHIN, class_masks
 
 from colmap_pvs.config import replace_config
 from colmap_pvs.evaluate import thin_structure_mask
@@ -27,9 +32,22 @@ from colmap_pvs.synthetic import SyntheticDatasetConfig, SyntheticMVSDataset
 from colmap_pvs.synthetic.scenes import FAMILIES, SceneConfig
 
 
+def class_counts(depth: np.ndarray, sample: dict) -> dict[str, tuple[int, int]]:
+    """``{class: (pixels within 5 %, pixels)}`` of one sample's ``depth`` ``[H, W]`` (its reference:
+    view 0), the classes of ``blind_spots.class_masks`` with the sample's own depth range."""
+    gt = sample["depth"].numpy()
+    rgb = sample["images"][0].numpy()
+    grey = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
+    K = sample["intrinsics"][0].numpy().astype(np.float64)
+    masks = class_masks(gt, grey, K, (float(sample["depth_min"]), float(sample["depth_max"])))
+    good = (depth > 0) & (np.abs(depth - gt) < WITHIN * np.where(gt > 0, gt, 1.0))
+    return {c: (int((good & m).sum()), int(m.sum())) for c, m in masks.items()}
+
+
 def evaluate(model: PVSNet, dataset, n: int, min_confidence: float) -> dict[str, float]:
     errs, rels, covered, rels_kept, total_valid, rels_thin = [], [], 0, [], 0, []
     seconds = []
+    per_class = {c: [0, 0] for c in CLASSES}
     for i in range(n):
         s = dataset[i]
         t0 = time.perf_counter()
@@ -50,6 +68,9 @@ def evaluate(model: PVSNet, dataset, n: int, min_confidence: float) -> dict[str,
         covered += int(keep.sum())
         total_valid += int(v.sum())
         rels_kept.append((e / gt[v])[keep])
+        for c, (k, m) in class_counts(d, s).items():
+            per_class[c][0] += k
+            per_class[c][1] += m
     e, r, rk, rt = (np.concatenate(x) for x in (errs, rels, rels_kept, rels_thin))
     return {
         "mae": float(e.mean()),
@@ -62,6 +83,7 @@ def evaluate(model: PVSNet, dataset, n: int, min_confidence: float) -> dict[str,
         "coverage": covered / max(total_valid, 1) * 100,
         "absrel_kept": float(rk.mean()) if rk.size else float("nan"),
         "s_per_sample": float(np.mean(seconds)),
+        "classes": {c: (100 * k / max(m, 1), m) for c, (k, m) in per_class.items()},
     }
 
 
@@ -75,6 +97,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--families", nargs="+", default=list(FAMILIES), help="scene families drawn")
     ap.add_argument("--as_trained_only", action="store_true", help="skip the switch variants")
+    ap.add_argument("--classes", action="store_true",
+                    help="also the %% within 5 %% of blind_spots.py's classes")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     model, meta = load_checkpoint(args.checkpoint)
@@ -101,15 +125,25 @@ def main() -> None:
               f"| coverage @conf{args.min_confidence} | AbsRel kept | s/sample |")
     print(header)
     print("|" + "---|" * 10)
+    results = {}
     for name, cfg in variants.items():
         m = PVSNet(cfg)
         wanted = m.state_dict()
         m.load_state_dict({k: v for k, v in state.items() if k in wanted})  # visibility off: no vis net
         m.eval()
-        r = evaluate(m, ds, args.samples, args.min_confidence)
+        r = results[name] = evaluate(m, ds, args.samples, args.min_confidence)
         print(f"| {name} | {r['mae']:.4f} | {r['absrel']:.4f} | {r['pct1']:.1f} | {r['pct2']:.1f} | "
               f"{r['pct5']:.1f} | {r['absrel_thin']:.3f} / {r['pct5_thin']:.1f} | {r['coverage']:.1f}% | "
               f"{r['absrel_kept']:.4f} | {r['s_per_sample']:.2f} |")
+    if args.classes:
+        first = next(iter(results.values()))["classes"]
+        total = first["all"][1]
+        print("\n% within 5 % by class (blind_spots.py's classes; the class's share of the GT pixels)")
+        shares = [f"{c} ({100 * n / max(total, 1):.1f} %)" for c, (_, n) in first.items()]
+        print("| variant | " + " | ".join(shares) + " |")
+        print("|" + "---|" * (len(CLASSES) + 1))
+        for name, r in results.items():
+            print(f"| {name} | " + " | ".join(f"{p:.1f}" for p, _ in r["classes"].values()) + " |")
 
 
 if __name__ == "__main__":

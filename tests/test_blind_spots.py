@@ -92,3 +92,25 @@ def test_frames_keeps_only_the_named_ones_of_the_stride_and_offset():
     assert rd.frame_names(names, args) == ["00001.png", "00004.png", "00007.png"]
     args.frames = ["00004.png", "00005.png"]  # 00005 is not one of the stride's frames
     assert rd.frame_names(names, args) == ["00004.png"]
+
+
+def test_synthetic_val_scores_the_classes_of_a_sample_with_its_own_depth_range():
+    import synthetic_val as sv
+    import torch
+
+    gt = _plane(72.0)
+    gt[:, :10] = 0
+    rgb = np.full((3, H, W), 0.5, np.float32)  # flat grey: every valid pixel is low texture
+    lo, hi = float(gt[gt > 0].min()), float(np.percentile(gt[gt > 0], 90))
+    sample = {"depth": torch.from_numpy(gt), "images": torch.from_numpy(rgb)[None],
+              "intrinsics": torch.from_numpy(K)[None],
+              "depth_min": torch.tensor(lo), "depth_max": torch.tensor(hi)}
+    pred = gt * 1.02
+    pred[:, 10:20] *= 1.1  # 12 % off
+    got = sv.class_counts(pred, sample)
+    valid = int((gt > 0).sum())
+    assert got["all"] == (valid - H * 10, valid)
+    assert got["low texture"] == got["all"]
+    outside = (gt > hi).sum()
+    assert 0 < outside < valid and got["outside range"][1] == outside
+    assert got["outside range"][1] + got["inside range"][1] == valid
