@@ -32,19 +32,30 @@ from colmap_pvs.synthetic import SyntheticDatasetConfig, SyntheticMVSDataset
 from colmap_pvs.synthetic.scenes import FAMILIES, SceneConfig
 
 
-def class_counts(depth: np.ndarray, sample: dict) -> dict[str, tuple[int, int]]:
-    """``{class: (pixels within 5 %, pixels)}`` of one sample's ``depth`` ``[H, W]`` (its reference:
-    view 0), the classes of ``blind_spots.class_masks`` with the sample's own depth range."""
+def sample_class_masks(sample: dict) -> dict[str, np.ndarray]:
+    """The classes of ``blind_spots.class_masks`` ``[H, W]`` of one sample's reference (view 0), with the
+    sample's own depth range."""
     gt = sample["depth"].numpy()
     rgb = sample["images"][0].numpy()
     grey = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
     K = sample["intrinsics"][0].numpy().astype(np.float64)
-    masks = class_masks(gt, grey, K, (float(sample["depth_min"]), float(sample["depth_max"])))
+    return class_masks(gt, grey, K, (float(sample["depth_min"]), float(sample["depth_max"])))
+
+
+def class_counts(depth: np.ndarray, sample: dict,
+                 masks: dict[str, np.ndarray] | None = None) -> dict[str, tuple[int, int]]:
+    """``{class: (pixels within 5 %, pixels)}`` of one sample's ``depth`` ``[H, W]`` (its reference:
+    view 0), over its ``masks`` (default: :func:`sample_class_masks`)."""
+    masks = sample_class_masks(sample) if masks is None else masks
+    gt = sample["depth"].numpy()
     good = (depth > 0) & (np.abs(depth - gt) < WITHIN * np.where(gt > 0, gt, 1.0))
     return {c: (int((good & m).sum()), int(m.sum())) for c, m in masks.items()}
 
 
-def evaluate(model: PVSNet, dataset, n: int, min_confidence: float) -> dict[str, float]:
+def evaluate(model: PVSNet, dataset, n: int, min_confidence: float,
+             masks: list[dict[str, np.ndarray]] | None = None) -> dict[str, float]:
+    """The metrics of ``model`` on the first ``n`` samples; per class too with ``masks`` (one
+    :func:`sample_class_masks` per sample, made once for every variant)."""
     errs, rels, covered, rels_kept, total_valid, rels_thin = [], [], 0, [], 0, []
     seconds = []
     per_class = {c: [0, 0] for c in CLASSES}
@@ -68,9 +79,10 @@ def evaluate(model: PVSNet, dataset, n: int, min_confidence: float) -> dict[str,
         covered += int(keep.sum())
         total_valid += int(v.sum())
         rels_kept.append((e / gt[v])[keep])
-        for c, (k, m) in class_counts(d, s).items():
-            per_class[c][0] += k
-            per_class[c][1] += m
+        if masks is not None:
+            for c, (k, m) in class_counts(d, s, masks[i]).items():
+                per_class[c][0] += k
+                per_class[c][1] += m
     e, r, rk, rt = (np.concatenate(x) for x in (errs, rels, rels_kept, rels_thin))
     return {
         "mae": float(e.mean()),
@@ -125,13 +137,14 @@ def main() -> None:
               f"| coverage @conf{args.min_confidence} | AbsRel kept | s/sample |")
     print(header)
     print("|" + "---|" * 10)
+    masks = [sample_class_masks(ds[i]) for i in range(args.samples)] if args.classes else None
     results = {}
     for name, cfg in variants.items():
         m = PVSNet(cfg)
         wanted = m.state_dict()
         m.load_state_dict({k: v for k, v in state.items() if k in wanted})  # visibility off: no vis net
         m.eval()
-        r = results[name] = evaluate(m, ds, args.samples, args.min_confidence)
+        r = results[name] = evaluate(m, ds, args.samples, args.min_confidence, masks)
         print(f"| {name} | {r['mae']:.4f} | {r['absrel']:.4f} | {r['pct1']:.1f} | {r['pct2']:.1f} | "
               f"{r['pct5']:.1f} | {r['absrel_thin']:.3f} / {r['pct5_thin']:.1f} | {r['coverage']:.1f}% | "
               f"{r['absrel_kept']:.4f} | {r['s_per_sample']:.2f} |")
