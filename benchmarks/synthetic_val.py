@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 import torch
-from blind_spots import CLASSES, WITHIN, class_masks
+from blind_spots import CLASSES, class_masks, counts
 
 from colmap_pvs.config import replace_config
 from colmap_pvs.evaluate import thin_structure_mask
@@ -45,11 +45,14 @@ def sample_class_masks(sample: dict) -> dict[str, np.ndarray]:
 def class_counts(depth: np.ndarray, sample: dict,
                  masks: dict[str, np.ndarray] | None = None) -> dict[str, tuple[int, int]]:
     """``{class: (pixels within 5 %, pixels)}`` of one sample's ``depth`` ``[H, W]`` (its reference:
-    view 0), over its ``masks`` (default: :func:`sample_class_masks`)."""
+    view 0), over its ``masks`` (default: :func:`sample_class_masks`), counted by ``blind_spots.counts``."""
     masks = sample_class_masks(sample) if masks is None else masks
     gt = sample["depth"].numpy()
-    good = (depth > 0) & (np.abs(depth - gt) < WITHIN * np.where(gt > 0, gt, 1.0))
-    return {c: (int((good & m).sum()), int(m.sum())) for c, m in masks.items()}
+    out = {}
+    for c, m in masks.items():
+        n, _, within = counts(depth, gt, m)
+        out[c] = (within, n)
+    return out
 
 
 def evaluate(model: PVSNet, dataset, n: int, min_confidence: float,
